@@ -1,0 +1,13 @@
+"""One error hierarchy for the project; messages name the file, part or value that was wrong."""
+
+
+class PartInstructError(Exception):
+    """Base class of every error raised on purpose by partinstruct_mjx."""
+
+
+class AssetError(PartInstructError):
+    """A robot or object asset is missing, unreadable or malformed."""
+
+
+class SceneError(PartInstructError):
+    """A scene cannot be assembled or a backend was given inconsistent input."""

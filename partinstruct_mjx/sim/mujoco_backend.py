@@ -1,0 +1,189 @@
+"""The `mujoco` backend: a batch of C-MuJoCo MjData stepped in parallel on CPU threads.
+
+MuJoCo releases the GIL inside `mj_step`, so a thread pool scales with cores. Each worker steps a fixed chunk of
+environments and copies their state into preallocated batch arrays, so results do not depend on the thread count:
+stepping B environments together gives exactly the states of stepping them one by one.
+"""
+
+from __future__ import annotations
+
+import os
+from concurrent.futures import ThreadPoolExecutor
+
+import mujoco
+import numpy as np
+
+from partinstruct_mjx.errors import SceneError
+from partinstruct_mjx.sim import panda
+from partinstruct_mjx.sim.scene import TABLE_HEIGHT, Scene
+from partinstruct_mjx.sim.state import MAX_FINGER_CONTACTS, SceneState, empty_scene_state
+
+DROP_CLEARANCE = 0.005
+"""Height of the object's lowest point above the table when it is released at reset."""
+
+_PHYSICS_STATE = mujoco.mjtState.mjSTATE_INTEGRATION
+
+
+class MujocoBackend:
+    """Steps B copies of a scene with C MuJoCo; `reset` and `step` return the batched SceneState."""
+
+    def __init__(self, scene: Scene, batch_size: int, num_threads: int | None = None):
+        if batch_size < 1:
+            raise SceneError(f"batch_size must be >= 1, got {batch_size}")
+        self.scene = scene
+        self.model = scene.model
+        self.batch_size = batch_size
+        self.datas = [mujoco.MjData(self.model) for _ in range(batch_size)]
+        threads = max(1, min(num_threads or os.cpu_count() or 1, batch_size))
+        self._chunks = [c for c in np.array_split(np.arange(batch_size), threads) if len(c)]
+        self._pool = ThreadPoolExecutor(threads) if threads > 1 else None
+        m = self.model
+        self._state = empty_scene_state(batch_size, m.nq, m.nv, m.nbody)
+        self._ctrl = np.tile(panda.HOME_CTRL, (batch_size, 1))
+        self._force6 = [np.zeros(6) for _ in range(batch_size)]
+        self._gripper_act_adr = m.actuator(panda.GRIPPER_ACTUATOR).actadr[0]
+
+    @property
+    def control_dt(self) -> float:
+        return self.scene.config.control_dt
+
+    def close(self) -> None:
+        """Stop the worker threads."""
+        if self._pool is not None:
+            self._pool.shutdown()
+            self._pool = None
+
+    def __enter__(self) -> MujocoBackend:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def reset(self, object_xy: np.ndarray | None = None, object_quat: np.ndarray | None = None) -> SceneState:
+        """Put the robot at home, drop the object at (x, y) with orientation `object_quat` and let it settle.
+
+        Args:
+          object_xy: (B, 2) object positions on the table; default (0, -0.03) (spec 1.4 example poses).
+          object_quat: (B, 4) object orientations (w, x, y, z); default identity.
+        Returns:
+          The SceneState after `config.settle_steps` control steps with the robot held at home (spec 1.4b).
+        """
+        b = self.batch_size
+        xy = np.broadcast_to(np.asarray([0.0, -0.03]) if object_xy is None else np.asarray(object_xy, float), (b, 2))
+        quat = np.broadcast_to([1.0, 0, 0, 0] if object_quat is None else np.asarray(object_quat, float), (b, 4))
+        scene = self.scene
+        for i, data in enumerate(self.datas):
+            mujoco.mj_resetData(self.model, data)
+            data.qpos[scene.arm_qpos_adr] = panda.HOME_ARM_QPOS
+            data.qpos[scene.finger_qpos_adr] = panda.FINGER_OPEN
+            q = quat[i] / np.linalg.norm(quat[i])
+            adr = scene.object_qpos_adr
+            data.qpos[adr:adr + 7] = [xy[i, 0], xy[i, 1], 0.0, *q]
+            mujoco.mj_kinematics(self.model, data)
+            data.qpos[adr + 2] = TABLE_HEIGHT + DROP_CLEARANCE - object_z_range(scene, data)[0]
+            data.ctrl[:] = panda.HOME_CTRL
+            data.act[self._gripper_act_adr] = panda.FINGER_OPEN
+            mujoco.mj_forward(self.model, data)
+        self._ctrl[:] = panda.HOME_CTRL
+        for _ in range(scene.config.settle_steps):
+            self._run(self._step_chunk)
+        return self._run(self._extract_chunk)
+
+    def step(self, ctrl: np.ndarray) -> SceneState:
+        """Apply actuator targets (B, 8) = 7 arm joint angles + finger opening for one control step."""
+        ctrl = np.asarray(ctrl, dtype=float)
+        if ctrl.shape != (self.batch_size, panda.NUM_CTRL):
+            raise SceneError(f"ctrl must have shape ({self.batch_size}, {panda.NUM_CTRL}), got {ctrl.shape}")
+        np.copyto(self._ctrl, ctrl)
+        return self._run(self._step_and_extract_chunk)
+
+    def get_physics_state(self) -> np.ndarray:
+        """(B, nstate) MuJoCo integration state (time, qpos, qvel, act, warm start, ctrl ...) for exact replay."""
+        size = mujoco.mj_stateSize(self.model, _PHYSICS_STATE)
+        out = np.empty((self.batch_size, size))
+        for i, data in enumerate(self.datas):
+            mujoco.mj_getState(self.model, data, out[i], _PHYSICS_STATE)
+        return out
+
+    def set_physics_state(self, states: np.ndarray) -> SceneState:
+        """Restore states from `get_physics_state` and return the matching SceneState."""
+        states = np.asarray(states, dtype=float)
+        size = mujoco.mj_stateSize(self.model, _PHYSICS_STATE)
+        if states.shape != (self.batch_size, size):
+            raise SceneError(f"physics states must have shape ({self.batch_size}, {size}), got {states.shape}")
+        for i, data in enumerate(self.datas):
+            mujoco.mj_setState(self.model, data, states[i], _PHYSICS_STATE)
+            mujoco.mj_forward(self.model, data)
+            self._ctrl[i] = data.ctrl
+        return self._run(self._extract_chunk)
+
+    # --- workers -------------------------------------------------------------------------------------------
+
+    def _run(self, work) -> SceneState:
+        if self._pool is None:
+            work(self._chunks[0])
+        else:
+            for future in [self._pool.submit(work, chunk) for chunk in self._chunks]:
+                future.result()
+        return self._state.replace()
+
+    def _step_chunk(self, envs: np.ndarray) -> None:
+        nstep = self.scene.config.substeps
+        for i in envs:
+            data = self.datas[i]
+            data.ctrl[:] = self._ctrl[i]
+            mujoco.mj_step(self.model, data, nstep=nstep)
+
+    def _step_and_extract_chunk(self, envs: np.ndarray) -> None:
+        self._step_chunk(envs)
+        self._extract_chunk(envs)
+
+    def _extract_chunk(self, envs: np.ndarray) -> None:
+        for i in envs:
+            self._extract(i)
+
+    def _extract(self, i: int) -> None:
+        """Copy environment i's MjData into row i of the batch state."""
+        data, scene, out = self.datas[i], self.scene, self._state
+        out.time[i] = data.time
+        out.qpos[i] = data.qpos
+        out.qvel[i] = data.qvel
+        out.arm_qpos[i] = data.qpos[scene.arm_qpos_adr]
+        out.finger_qpos[i] = data.qpos[scene.finger_qpos_adr]
+        out.tcp_pos[i] = data.site_xpos[scene.tcp_site]
+        out.tcp_quat[i] = data.xquat[scene.hand_body]
+        out.object_pos[i] = data.xpos[scene.object_body]
+        out.object_quat[i] = data.xquat[scene.object_body]
+        out.body_pos[i] = data.xpos
+        out.body_quat[i] = data.xquat
+        self._extract_finger_contacts(i)
+
+    def _extract_finger_contacts(self, i: int) -> None:
+        data, out = self.datas[i], self._state
+        out.contact_pos[i] = 0.0
+        out.contact_force[i] = 0.0
+        out.contact_geom[i] = -1
+        if data.ncon == 0:
+            return
+        geoms = data.contact.geom[: data.ncon]
+        finger_of = self.scene.geom_finger[geoms]
+        found: list[list[tuple[float, int, int]]] = [[], []]
+        for c in np.flatnonzero((finger_of >= 0).any(axis=1)):
+            side = 0 if finger_of[c, 0] >= 0 else 1
+            mujoco.mj_contactForce(self.model, data, int(c), self._force6[i])
+            found[finger_of[c, side]].append((self._force6[i][0], int(c), int(geoms[c, 1 - side])))
+        for finger, contacts in enumerate(found):
+            contacts.sort(key=lambda item: -item[0])
+            for slot, (force, c, other) in enumerate(contacts[:MAX_FINGER_CONTACTS]):
+                out.contact_pos[i, finger, slot] = data.contact.pos[c]
+                out.contact_force[i, finger, slot] = force
+                out.contact_geom[i, finger, slot] = other
+
+
+def object_z_range(scene: Scene, data: mujoco.MjData) -> tuple[float, float]:
+    """Lowest and highest world z of the object's collision geoms (from their bounding boxes) in `data`."""
+    geoms = scene.object_geoms
+    rot = data.geom_xmat[geoms].reshape(-1, 3, 3)
+    centre_z = data.geom_xpos[geoms, 2] + np.einsum("gj,gj->g", rot[:, 2], scene.model.geom_aabb[geoms, :3])
+    half_z = np.einsum("gj,gj->g", np.abs(rot[:, 2]), scene.model.geom_aabb[geoms, 3:])
+    return float((centre_z - half_z).min()), float((centre_z + half_z).max())

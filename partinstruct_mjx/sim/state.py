@@ -1,0 +1,75 @@
+"""The batched `SceneState` pytree that both physics backends produce and everything above physics reads."""
+
+from __future__ import annotations
+
+import numpy as np
+from flax import struct
+
+MAX_FINGER_CONTACTS = 8
+"""Contacts kept per finger (the strongest ones when there are more)."""
+
+
+@struct.dataclass
+class SceneState:
+    """Physics state of a batch of B scenes. Quaternions are MuJoCo's (w, x, y, z); positions in metres, world frame.
+
+    As in MuJoCo (and MJX), poses and contacts are those of the last physics substep's forward pass, i.e. one
+    physics step (5 ms) behind `qpos`/`qvel`.
+
+    Attributes:
+      time: (B,) simulated seconds.
+      qpos, qvel: (B, nq), (B, nv) full generalised coordinates (robot, then object).
+      arm_qpos: (B, 7) arm joint angles.
+      finger_qpos: (B, 2) finger slide positions (0 closed ... 0.04 open, each).
+      tcp_pos, tcp_quat: (B, 3), (B, 4) tool centre point pose (spec 1.3).
+      object_pos, object_quat: (B, 3), (B, 4) pose of the object's root body.
+      body_pos, body_quat: (B, nbody, 3), (B, nbody, 4) every body's pose (object links move part points).
+      contact_pos: (B, 2, K, 3) contact points of the left (0) and right (1) finger.
+      contact_force: (B, 2, K) contact normal forces in newtons; 0 in empty slots.
+      contact_geom: (B, 2, K) the geom each finger touches; -1 in empty slots.
+    """
+
+    time: np.ndarray
+    qpos: np.ndarray
+    qvel: np.ndarray
+    arm_qpos: np.ndarray
+    finger_qpos: np.ndarray
+    tcp_pos: np.ndarray
+    tcp_quat: np.ndarray
+    object_pos: np.ndarray
+    object_quat: np.ndarray
+    body_pos: np.ndarray
+    body_quat: np.ndarray
+    contact_pos: np.ndarray
+    contact_force: np.ndarray
+    contact_geom: np.ndarray
+
+    @property
+    def batch_size(self) -> int:
+        return self.time.shape[0]
+
+    @property
+    def gripper_width(self):
+        """(B,) distance between the finger pads: the sum of both finger positions."""
+        return self.finger_qpos.sum(axis=-1)
+
+
+def empty_scene_state(batch_size: int, nq: int, nv: int, nbody: int) -> SceneState:
+    """A zero-filled host-side SceneState used as the backends' output buffer."""
+    b, k = batch_size, MAX_FINGER_CONTACTS
+    return SceneState(
+        time=np.zeros(b),
+        qpos=np.zeros((b, nq)),
+        qvel=np.zeros((b, nv)),
+        arm_qpos=np.zeros((b, 7)),
+        finger_qpos=np.zeros((b, 2)),
+        tcp_pos=np.zeros((b, 3)),
+        tcp_quat=np.zeros((b, 4)),
+        object_pos=np.zeros((b, 3)),
+        object_quat=np.zeros((b, 4)),
+        body_pos=np.zeros((b, nbody, 3)),
+        body_quat=np.zeros((b, nbody, 4)),
+        contact_pos=np.zeros((b, 2, k, 3)),
+        contact_force=np.zeros((b, 2, k)),
+        contact_geom=np.full((b, 2, k), -1, dtype=np.int32),
+    )

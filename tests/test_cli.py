@@ -1,0 +1,35 @@
+"""The command line: help, the main job, and the benchmark writer."""
+
+import subprocess
+import sys
+
+from partinstruct_mjx.bench.report import write_section
+from partinstruct_mjx.cli import main
+
+
+def test_help_lists_the_commands():
+    out = subprocess.run([sys.executable, "-m", "partinstruct_mjx.cli", "--help"], capture_output=True, text=True)
+    assert out.returncode == 0
+    assert "simulate" in out.stdout and "bench" in out.stdout
+
+
+def test_simulate_main_job_reports_held_objects(capsys):
+    assert main(["simulate", "--batch", "2", "--seed", "5"]) == 0
+    out = capsys.readouterr().out
+    assert "2/2 objects lifted and held for 3 s" in out
+
+
+def test_simulate_reports_a_missing_object_clearly(tmp_path, capsys):
+    assert main(["simulate", "--object", str(tmp_path / "missing.xml")]) == 2
+    assert "missing.xml" in capsys.readouterr().err
+
+
+def test_bench_writes_its_section_and_keeps_others(tmp_path, capsys):
+    report = tmp_path / "benchmarks.md"
+    write_section(report, "other", "## Other\n\nkeep me")
+    assert main(["bench", "--batch-sizes", "1", "2", "--steps", "5", "--repeats", "1", "--output", str(report)]) == 0
+    text = report.read_text()
+    assert "keep me" in text and "## CPU backend" in text
+    assert "| 2 |" in text and "command: `partinstruct bench" in text
+    assert main(["bench", "--batch-sizes", "1", "--steps", "5", "--repeats", "1", "--output", str(report)]) == 0
+    assert report.read_text().count("## CPU backend") == 1

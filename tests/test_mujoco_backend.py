@@ -1,0 +1,101 @@
+"""The C-MuJoCo batched backend: home pose, settling, batch determinism, state contents, errors."""
+
+import numpy as np
+import pytest
+
+from partinstruct_mjx.bench.cpu_backend import moving_controls
+from partinstruct_mjx.errors import SceneError
+from partinstruct_mjx.sim import panda
+from partinstruct_mjx.sim.mujoco_backend import MujocoBackend
+from partinstruct_mjx.sim.scene import TABLE_HEIGHT
+
+
+def _placements(batch, seed=0):
+    rng = np.random.default_rng(seed)
+    xy = np.column_stack([rng.uniform(-0.05, 0.08, batch), rng.uniform(-0.085, 0.2, batch)])
+    yaw = rng.uniform(-np.pi, np.pi, batch)
+    quat = np.column_stack([np.cos(yaw / 2), np.zeros(batch), np.zeros(batch), np.sin(yaw / 2)])
+    return xy, quat
+
+
+def test_robot_holds_its_home_pose(scene):
+    with MujocoBackend(scene, 2) as backend:
+        state = backend.reset()
+        for _ in range(100):  # 5 s
+            state = backend.step(np.tile(panda.HOME_CTRL, (2, 1)))
+    np.testing.assert_allclose(state.arm_qpos, np.tile(panda.HOME_ARM_QPOS, (2, 1)), atol=1e-4)
+    np.testing.assert_allclose(state.finger_qpos, panda.FINGER_OPEN, atol=1e-4)
+    np.testing.assert_allclose(state.tcp_pos[0], [0.5748, 0.5751, 0.3478], atol=5e-4)
+    assert np.abs(state.qvel[:, scene.arm_dof_adr]).max() < 1e-3
+
+
+def test_object_settles_without_jitter_or_penetration(scene):
+    xy, quat = _placements(4)
+    with MujocoBackend(scene, 4) as backend:
+        settled = backend.reset(xy, quat)
+        trajectory = []
+        for _ in range(40):  # 2 more seconds at rest
+            state = backend.step(np.tile(panda.HOME_CTRL, (4, 1)))
+            trajectory.append(state.object_pos.copy())
+        depths = [min(0.0, d.contact.dist[: d.ncon].min(initial=0.0)) for d in backend.datas]
+    trajectory = np.array(trajectory)
+    np.testing.assert_allclose(settled.object_pos[:, :2], xy, atol=2e-3)     # dropped where asked, no sliding
+    np.testing.assert_allclose(settled.object_pos[:, 2], TABLE_HEIGHT, atol=1e-3)  # origin at the block's bottom
+    assert np.abs(trajectory - settled.object_pos).max() < 1e-4              # no jitter while resting
+    assert np.abs(state.qvel[:, scene.object_dof_adr:]).max() < 1e-3
+    assert min(depths) > -1e-3                                                # < 1 mm penetration
+
+
+def test_batch_equals_one_by_one(scene):
+    """Stepping 8 environments together gives exactly the states of stepping each alone."""
+    batch, steps = 8, 30
+    xy, quat = _placements(batch, seed=1)
+    controls = moving_controls(batch, steps, seed=2)
+    with MujocoBackend(scene, batch, num_threads=2) as backend:
+        backend.reset(xy, quat)
+        for ctrl in controls:
+            together = backend.step(ctrl)
+    for i in range(batch):
+        with MujocoBackend(scene, 1) as single:
+            single.reset(xy[i:i + 1], quat[i:i + 1])
+            for ctrl in controls:
+                alone = single.step(ctrl[i:i + 1])
+        np.testing.assert_array_equal(alone.qpos[0], together.qpos[i])
+        np.testing.assert_array_equal(alone.qvel[0], together.qvel[i])
+        np.testing.assert_array_equal(alone.contact_force[0], together.contact_force[i])
+
+
+def test_state_shapes_and_poses_agree_with_qpos(scene):
+    with MujocoBackend(scene, 3) as backend:
+        state = backend.reset()
+    m = scene.model
+    assert state.qpos.shape == (3, m.nq) and state.body_pos.shape == (3, m.nbody, 3)
+    assert state.contact_pos.shape == (3, 2, 8, 3) and state.contact_geom.dtype == np.int32
+    adr = scene.object_qpos_adr  # poses come from the last substep's forward pass, one 5 ms step behind qpos
+    np.testing.assert_allclose(state.object_pos, state.qpos[:, adr:adr + 3], atol=1e-6)
+    np.testing.assert_allclose(state.object_quat, state.qpos[:, adr + 3:adr + 7], atol=1e-6)
+    np.testing.assert_allclose(np.linalg.norm(state.tcp_quat, axis=1), 1.0)
+    np.testing.assert_allclose(state.gripper_width, 0.08)
+    assert (state.contact_geom == -1).all() and (state.contact_force == 0).all()  # open gripper touches nothing
+
+
+def test_physics_state_round_trip_replays_exactly(scene):
+    controls = moving_controls(2, 20, seed=3)
+    with MujocoBackend(scene, 2) as backend:
+        backend.reset()
+        saved = backend.get_physics_state()
+        first = [backend.step(c).qpos.copy() for c in controls]
+        backend.set_physics_state(saved)
+        second = [backend.step(c).qpos.copy() for c in controls]
+    np.testing.assert_array_equal(np.array(first), np.array(second))
+
+
+def test_bad_inputs_raise_clear_errors(scene):
+    with pytest.raises(SceneError, match="batch_size"):
+        MujocoBackend(scene, 0)
+    with MujocoBackend(scene, 2) as backend:
+        backend.reset()
+        with pytest.raises(SceneError, match=r"ctrl must have shape \(2, 8\)"):
+            backend.step(np.zeros((3, 8)))
+        with pytest.raises(SceneError, match="physics states"):
+            backend.set_physics_state(np.zeros((2, 5)))

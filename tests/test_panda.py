@@ -1,0 +1,70 @@
+"""The Panda MJCF: kinematics against the original's verified frames, limits, actuators and collision set."""
+
+import mujoco
+import numpy as np
+
+from partinstruct_mjx import paths
+from partinstruct_mjx.sim import panda
+
+
+def _robot():
+    model = mujoco.MjModel.from_xml_path(str(paths.robot_xml()))
+    return model, mujoco.MjData(model)
+
+
+def test_home_tcp_matches_the_original():
+    """Spec 1.3 (verified with pybullet_data's URDF): home TCP at (0.5748, 0.5751, 0.3478), xyzw (0.2656, 0.9591, -0.0876, -0.0446)."""
+    model, data = _robot()
+    data.qpos[:7] = panda.HOME_ARM_QPOS
+    mujoco.mj_kinematics(model, data)
+    tcp = data.site_xpos[model.site("tcp").id] + panda.BASE_POS
+    np.testing.assert_allclose(tcp, [0.5748, 0.5751, 0.3478], atol=2e-4)
+    quat_xyzw = np.roll(data.xquat[model.body("panda_hand").id], -1)
+    expected = np.array([0.2656, 0.9591, -0.0876, -0.0446])
+    assert min(np.abs(quat_xyzw - expected).max(), np.abs(quat_xyzw + expected).max()) < 2e-4
+
+
+def test_sites_lie_on_the_hand_axis_at_the_spec_offsets():
+    model, data = _robot()
+    mujoco.mj_kinematics(model, data)
+    hand = model.body("panda_hand").id
+    for site, offset in [("grasptarget", 0.105), ("tcp", 0.055), ("fingertip", 0.11125)]:
+        local = data.xmat[hand].reshape(3, 3).T @ (data.site_xpos[model.site(site).id] - data.xpos[hand])
+        np.testing.assert_allclose(local, [0, 0, offset], atol=1e-9)
+
+
+def test_joint_limits_are_the_franka_datasheet_values():
+    model, _ = _robot()
+    lower = [-2.8973, -1.7628, -2.8973, -3.0718, -2.8973, -0.0175, -2.8973]
+    upper = [2.8973, 1.7628, 2.8973, -0.0698, 2.8973, 3.7525, 2.8973]
+    ranges = np.array([model.joint(name).range for name in panda.ARM_JOINTS])
+    np.testing.assert_allclose(ranges[:, 0], lower)
+    np.testing.assert_allclose(ranges[:, 1], upper)
+    for name in panda.FINGER_JOINTS:
+        np.testing.assert_allclose(model.joint(name).range, [0.0, 0.04])
+    assert model.nu == panda.NUM_CTRL
+
+
+def test_collision_set_arm_only_table_gripper_table_and_object():
+    model, _ = _robot()
+    finger_or_hand = {model.body(n).id for n in (*panda.FINGER_BODIES, panda.HAND_BODY)}
+    colliding = [g for g in range(model.ngeom) if model.geom_contype[g] or model.geom_conaffinity[g]]
+    assert colliding, "the robot must have collision geoms"
+    for g in colliding:
+        if model.geom_bodyid[g] in finger_or_hand:
+            assert (model.geom_contype[g], model.geom_conaffinity[g]) == (8, 3)
+        else:
+            assert (model.geom_contype[g], model.geom_conaffinity[g]) == (4, 1)
+    pads = [model.geom(g).name for g in colliding if "pad" in model.geom(g).name]
+    assert len(pads) == 4 and all(model.geom(p).type == mujoco.mjtGeom.mjGEOM_CAPSULE for p in pads)
+
+
+def test_wrist_camera_looks_along_the_approach_axis():
+    model, data = _robot()
+    mujoco.mj_forward(model, data)
+    cam = model.camera("wrist").id
+    hand_rot = data.xmat[model.body("panda_hand").id].reshape(3, 3)
+    cam_rot = data.cam_xmat[cam].reshape(3, 3)
+    np.testing.assert_allclose(-cam_rot[:, 2], hand_rot[:, 2], atol=1e-9)   # optical axis = +z of the hand
+    np.testing.assert_allclose(cam_rot[:, 0], hand_rot[:, 1], atol=1e-9)    # image x = +y of the hand
+    assert abs(model.cam_fovy[cam] - 73.7398) < 1e-3
