@@ -1,22 +1,31 @@
-"""partinstruct-mjx: the PartInstruct part-level manipulation benchmark on MuJoCo with batched JAX rollouts."""
+"""partinstruct-mjx: the PartInstruct part-level manipulation benchmark on MuJoCo with batched JAX rollouts.
+
+The public names below are imported on first use, so `import partinstruct_mjx` stays cheap (no JAX, no MuJoCo)
+for tools and worker processes that need only a part of the package.
+"""
+
+import importlib
 
 from partinstruct_mjx.jax_setup import set_xla_flags
 
 set_xla_flags()
 
-from partinstruct_mjx.errors import AssetError, PartInstructError, SceneError  # noqa: E402
-from partinstruct_mjx.sim.mujoco_backend import MujocoBackend  # noqa: E402
-from partinstruct_mjx.sim.scene import Scene, SceneConfig, build_scene  # noqa: E402
-from partinstruct_mjx.sim.state import SceneState  # noqa: E402
-
 __version__ = "0.1.0"
-__all__ = [
-    "AssetError",
-    "MujocoBackend",
-    "PartInstructError",
-    "Scene",
-    "SceneConfig",
-    "SceneError",
-    "SceneState",
-    "build_scene",
-]
+
+_PUBLIC = {
+    "AssetError": "partinstruct_mjx.errors",
+    "PartInstructError": "partinstruct_mjx.errors",
+    "SceneError": "partinstruct_mjx.errors",
+    "MujocoBackend": "partinstruct_mjx.sim.mujoco_backend",
+    "Scene": "partinstruct_mjx.sim.scene",
+    "SceneConfig": "partinstruct_mjx.sim.scene",
+    "build_scene": "partinstruct_mjx.sim.scene",
+    "SceneState": "partinstruct_mjx.sim.state",
+}
+__all__ = sorted(_PUBLIC)
+
+
+def __getattr__(name: str):
+    if name in _PUBLIC:
+        return getattr(importlib.import_module(_PUBLIC[name]), name)
+    raise AttributeError(f"module 'partinstruct_mjx' has no attribute '{name}'")

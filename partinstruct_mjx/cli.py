@@ -1,4 +1,4 @@
-"""The `partinstruct` command line: simulate, bench."""
+"""The `partinstruct` command line: simulate, convert, bench."""
 
 from __future__ import annotations
 
@@ -29,13 +29,21 @@ def main(argv: list[str] | None = None) -> int:
     sim.add_argument("--threads", type=int, default=None, help="worker threads (default: all cores)")
     sim.set_defaults(func=_simulate)
 
+    _add_convert_parser(commands)
+
     bench = commands.add_parser(
-        "bench", help="measure env steps/s of the CPU backend and write docs/benchmarks.md",
-        description="Time the mujoco (C, CPU-thread) backend at several batch sizes; medians of repeated runs.")
+        "bench", help="measure speed (CPU backend, conversion) and write docs/benchmarks.md",
+        description="cpu_backend: env steps/s of the mujoco (C, CPU-thread) backend at several batch sizes, medians of "
+                    "repeated runs. convert: conversion seconds, hulls and vertices per object of --sources, with the "
+                    "default (quality) CoACD settings and an empty cache.")
+    bench.add_argument("suite", nargs="?", default="cpu_backend", choices=["cpu_backend", "convert"],
+                       help="what to measure (default cpu_backend)")
+    bench.add_argument("--sources", type=Path, nargs="+", default=[Path("../shared/partnet_samples")],
+                       help="convert suite: PartNet-Mobility folders (default ../shared/partnet_samples)")
     bench.add_argument("--batch-sizes", type=int, nargs="+", default=[1, 2, 8, 32], help="default: 1 2 8 32")
     bench.add_argument("--steps", type=int, default=200, help="control steps per timed run (default 200)")
     bench.add_argument("--repeats", type=int, default=5, help="timed runs per batch size (default 5)")
-    bench.add_argument("--threads", type=int, default=None, help="worker threads (default: all cores)")
+    bench.add_argument("--threads", type=int, default=None, help="worker threads/processes (default: all cores)")
     bench.add_argument("--output", type=Path, default=DEFAULT_BENCH_OUTPUT,
                        help=f"markdown file to update (default {DEFAULT_BENCH_OUTPUT}); '-' prints only")
     bench.set_defaults(func=_bench)
@@ -48,6 +56,70 @@ def main(argv: list[str] | None = None) -> int:
     except PartInstructError as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
+
+
+def _add_convert_parser(commands) -> None:
+    from partinstruct_mjx.assets.convert import DEFAULT_CACHE_DIR, ConvertConfig
+    from partinstruct_mjx.assets.decompose import DecompositionConfig
+    from partinstruct_mjx.assets.mjcf import PhysicsConfig
+
+    defaults, budget, physics = ConvertConfig(), DecompositionConfig(), PhysicsConfig()
+    convert = commands.add_parser(
+        "convert", help="convert PartNet-Mobility object folders (or a dataset tree) into MJCF assets",
+        description="Convert PartNet-Mobility object folders into <out>/objects/<category>/<id>/ with CoACD convex "
+                    "decomposition per part, part-labelled geoms, parts.npz surface points and meta.json, and update "
+                    "<out>/catalog.json. Unchanged objects are skipped, decompositions are cached by content hash, "
+                    "and a failed object leaves no folder behind.")
+    convert.add_argument("sources", nargs="+", type=Path, help="object folders (with mobility.urdf) or trees of them")
+    convert.add_argument("--out", type=Path, default=Path("assets_mjcf"), help="assets root (default ./assets_mjcf)")
+    size = convert.add_mutually_exclusive_group()
+    size.add_argument("--scale", type=float, default=None, help="multiply the dataset units by this (e.g. 0.1)")
+    size.add_argument("--target-size", type=float, default=defaults.target_size,
+                      help=f"scale each object so its largest extent is this many metres (default {defaults.target_size})")
+    convert.add_argument("--rigid", action="store_true", help="freeze all joints (one rigid body per object)")
+    mass = convert.add_mutually_exclusive_group()
+    mass.add_argument("--mass", type=float, default=physics.mass, help=f"total mass in kg (default {physics.mass})")
+    mass.add_argument("--density", type=float, default=None, help="density in kg/m^3 instead of a total mass")
+    convert.add_argument("--max-hulls-per-part", type=int, default=budget.max_hulls_per_part,
+                         help=f"default {budget.max_hulls_per_part}")
+    convert.add_argument("--max-hulls-per-object", type=int, default=budget.max_hulls_per_object,
+                         help=f"default {budget.max_hulls_per_object} (MJX cost grows with every hull)")
+    convert.add_argument("--max-hull-vertices", type=int, default=budget.max_hull_vertices,
+                         help=f"default {budget.max_hull_vertices}")
+    convert.add_argument("--threshold", type=float, default=None,
+                         help=f"CoACD concavity threshold (default {budget.threshold}; lower = finer)")
+    convert.add_argument("--fast", action="store_true", help="coarse, quick CoACD settings (previews, tests)")
+    convert.add_argument("--points-per-part", type=int, default=defaults.points_per_part,
+                         help=f"surface points per part in parts.npz (default {defaults.points_per_part})")
+    convert.add_argument("--seed", type=int, default=defaults.seed, help="seed of CoACD and the surface points")
+    convert.add_argument("--workers", type=int, default=defaults.workers, help="decomposition processes (default: cores)")
+    convert.add_argument("--timeout", type=float, default=defaults.timeout,
+                         help=f"seconds allowed per part decomposition (default {defaults.timeout:g})")
+    convert.add_argument("--cache-dir", type=Path, default=DEFAULT_CACHE_DIR, help=f"default {DEFAULT_CACHE_DIR}")
+    convert.add_argument("--quiet", action="store_true", help="no progress bars")
+    convert.set_defaults(func=_convert)
+
+
+def _convert(args) -> int:
+    import dataclasses
+
+    from partinstruct_mjx.assets.convert import ConvertConfig, convert_objects, summary_table
+    from partinstruct_mjx.assets.decompose import DecompositionConfig
+    from partinstruct_mjx.assets.mjcf import PhysicsConfig
+
+    decomposition = DecompositionConfig.fast() if args.fast else DecompositionConfig()
+    decomposition = dataclasses.replace(
+        decomposition, max_hulls_per_part=args.max_hulls_per_part, max_hulls_per_object=args.max_hulls_per_object,
+        max_hull_vertices=args.max_hull_vertices, seed=args.seed,
+        threshold=decomposition.threshold if args.threshold is None else args.threshold)
+    config = ConvertConfig(
+        scale=args.scale, target_size=None if args.scale is not None else args.target_size, rigid=args.rigid,
+        physics=PhysicsConfig(mass=args.mass, density=args.density), decomposition=decomposition,
+        points_per_part=args.points_per_part, seed=args.seed, workers=args.workers, timeout=args.timeout,
+        cache_dir=str(args.cache_dir))
+    records = convert_objects(args.sources, args.out, config, progress=not args.quiet)
+    print(summary_table(records))
+    return 1 if any(r.status == "failed" for r in records) else 0
 
 
 def _random_placements(batch: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
@@ -82,9 +154,31 @@ def _simulate(args) -> int:
 
 
 def _bench(args) -> int:
-    from partinstruct_mjx.bench import cpu_backend
     from partinstruct_mjx.bench.report import provenance_lines, write_section
     from partinstruct_mjx.provenance import provenance
+
+    command = " ".join(["partinstruct", "bench", *sys.argv[2:]]) if sys.argv[1:2] == ["bench"] else "partinstruct bench"
+    if args.suite == "convert":
+        from partinstruct_mjx.assets.convert import ConvertConfig
+        from partinstruct_mjx.bench import conversion
+
+        config = ConvertConfig(workers=args.threads or ConvertConfig().workers)
+        records, wall = conversion.measure(args.sources, config)
+        for r in records:
+            print(f"{r.object_id:<12} {r.category:<12} {r.status:<9} {r.seconds:>7.1f} s {r.hulls:>3} hulls "
+                  f"{r.vertices:>4} vertices {r.reason}")
+        title, heading, table = "convert", "Conversion (PartNet-Mobility samples)", conversion.markdown(records, wall, config)
+    else:
+        title, heading, table = "cpu_backend", "CPU backend (C MuJoCo, thread pool)", _bench_cpu_backend(args)
+    body = f"## {heading}\n\n" + provenance_lines(provenance(), command) + "\n" + table
+    if str(args.output) != "-":
+        write_section(args.output, title, body)
+        print(f"wrote {args.output}")
+    return 0
+
+
+def _bench_cpu_backend(args) -> str:
+    from partinstruct_mjx.bench import cpu_backend
     from partinstruct_mjx.sim.scene import build_scene
 
     scene = build_scene()
@@ -93,13 +187,7 @@ def _bench(args) -> int:
         result = cpu_backend.measure(scene, batch, args.steps, args.repeats, args.threads)
         results.append(result)
         print(f"batch {batch:>5}: {result.env_steps_per_s:>10,.0f} env steps/s  ({result.threads} threads)")
-    command = " ".join(["partinstruct", "bench", *sys.argv[2:]]) if sys.argv[1:2] == ["bench"] else "partinstruct bench"
-    body = "## CPU backend (C MuJoCo, thread pool)\n\n" + provenance_lines(provenance(), command) + "\n" + \
-        cpu_backend.markdown(results, scene)
-    if str(args.output) != "-":
-        write_section(args.output, "cpu_backend", body)
-        print(f"wrote {args.output}")
-    return 0
+    return cpu_backend.markdown(results, scene)
 
 
 if __name__ == "__main__":

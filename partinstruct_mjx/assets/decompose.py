@@ -1,0 +1,143 @@
+"""Convex decomposition of part meshes with CoACD under hard budgets, and a content-hash cache of the results.
+
+Budgets keep objects fast in MJX (DESIGN.md): hulls per part, hulls per object, vertices per hull.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import os
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+from partinstruct_mjx.errors import AssetError
+
+CONVERTER_VERSION = "3"
+"""Bumped whenever a change alters the decomposition output for the same input."""
+
+MIN_THICKNESS = 1e-3
+"""Flat hulls (e.g. a single quad) are thickened to this many metres so MuJoCo can compute their volume."""
+
+Hull = tuple[np.ndarray, np.ndarray]
+
+
+@dataclass(frozen=True)
+class DecompositionConfig:
+    """CoACD settings and budgets. `fast()` trades accuracy for seconds (tests, previews)."""
+
+    max_hulls_per_part: int = 8
+    max_hulls_per_object: int = 16
+    max_hull_vertices: int = 32
+    threshold: float = 0.08
+    preprocess_resolution: int = 50
+    resolution: int = 2000
+    mcts_iterations: int = 150
+    mcts_nodes: int = 20
+    mcts_max_depth: int = 3
+    seed: int = 0
+
+    @classmethod
+    def fast(cls) -> DecompositionConfig:
+        return cls(threshold=0.25, preprocess_resolution=25, resolution=400, mcts_iterations=20, mcts_nodes=8,
+                   mcts_max_depth=2)
+
+
+def hull_budgets(areas: list[float], config: DecompositionConfig) -> list[int]:
+    """Hulls allowed per part: proportional to surface area, at least one, within both budgets."""
+    if len(areas) > config.max_hulls_per_object:
+        raise AssetError(f"{len(areas)} collision parts exceed the budget of {config.max_hulls_per_object} hulls "
+                         f"per object")
+    share = np.asarray(areas, dtype=float) / max(float(np.sum(areas)), 1e-12)
+    budgets = np.clip(np.floor(share * config.max_hulls_per_object), 1, config.max_hulls_per_part).astype(int)
+    while budgets.sum() > config.max_hulls_per_object:
+        budgets[np.argmax(budgets)] -= 1
+    return budgets.tolist()
+
+
+def decomposition_key(vertices: np.ndarray, faces: np.ndarray, budget: int, config: DecompositionConfig) -> str:
+    """Content hash of a decomposition job: the mesh bytes, the budget and every setting."""
+    digest = hashlib.sha256()
+    digest.update(np.ascontiguousarray(vertices, dtype=np.float64).tobytes())
+    digest.update(np.ascontiguousarray(faces, dtype=np.int64).tobytes())
+    digest.update(json.dumps([CONVERTER_VERSION, budget, dataclasses.asdict(config)], sort_keys=True).encode())
+    return digest.hexdigest()
+
+
+def decompose(vertices: np.ndarray, faces: np.ndarray, budget: int, config: DecompositionConfig) -> list[Hull]:
+    """Split a part mesh into at most `budget` convex hulls of at most `config.max_hull_vertices` vertices each."""
+    if budget == 1:
+        hulls = [(vertices, faces)]
+    else:
+        import coacd
+
+        coacd.set_log_level("error")
+        hulls = coacd.run_coacd(
+            coacd.Mesh(np.asarray(vertices, float), np.asarray(faces, np.int64)), threshold=config.threshold,
+            max_convex_hull=budget, preprocess_resolution=config.preprocess_resolution, resolution=config.resolution,
+            mcts_iterations=config.mcts_iterations, mcts_nodes=config.mcts_nodes, mcts_max_depth=config.mcts_max_depth,
+            max_ch_vertex=config.max_hull_vertices, seed=config.seed)
+    return [_convex(np.asarray(v, float), config.max_hull_vertices) for v, _ in hulls[:budget]]
+
+
+def _convex(points: np.ndarray, max_vertices: int) -> Hull:
+    """Convex hull of `points` with at most `max_vertices` vertices (farthest-point subset), never flat."""
+    points = _thicken(np.unique(points, axis=0))
+    hull = trimesh.convex.convex_hull(points)
+    if len(hull.vertices) > max_vertices:
+        hull = trimesh.convex.convex_hull(_farthest_points(np.asarray(hull.vertices), max_vertices))
+    return np.asarray(hull.vertices, float), np.asarray(hull.faces, np.int32)
+
+
+def _thicken(points: np.ndarray) -> np.ndarray:
+    centred = points - points.mean(axis=0)
+    _, singular, axes = np.linalg.svd(centred, full_matrices=False)
+    thickness = np.ptp(centred @ axes[-1]) if len(points) > 2 else 0.0
+    if len(points) >= 4 and thickness >= MIN_THICKNESS and singular[-1] > 0:
+        return points
+    normal = axes[-1] if len(axes) == 3 else np.array([0.0, 0.0, 1.0])
+    offset = 0.5 * MIN_THICKNESS * normal
+    return np.concatenate([points + offset, points - offset])
+
+
+def _farthest_points(points: np.ndarray, count: int) -> np.ndarray:
+    chosen = [int(np.argmax(np.linalg.norm(points - points.mean(axis=0), axis=1)))]
+    distance = np.linalg.norm(points - points[chosen[0]], axis=1)
+    while len(chosen) < count:
+        chosen.append(int(np.argmax(distance)))
+        distance = np.minimum(distance, np.linalg.norm(points - points[chosen[-1]], axis=1))
+    return points[chosen]
+
+
+class HullCache:
+    """Decompositions stored by content hash as .npz files; writes are atomic, so a killed run leaves no partial entry."""
+
+    def __init__(self, directory: str | os.PathLike):
+        self.directory = Path(directory)
+
+    def get(self, key: str) -> list[Hull] | None:
+        entry = self.get_with_seconds(key)
+        return None if entry is None else entry[0]
+
+    def get_with_seconds(self, key: str) -> tuple[list[Hull], float] | None:
+        """The hulls and the seconds their decomposition took, or None if not cached."""
+        path = self.directory / f"{key}.npz"
+        if not path.is_file():
+            return None
+        with np.load(path) as data:
+            count = int(data["count"])
+            return [(data[f"v{i}"], data[f"f{i}"]) for i in range(count)], float(data["seconds"])
+
+    def put(self, key: str, hulls: list[Hull], seconds: float) -> None:
+        self.directory.mkdir(parents=True, exist_ok=True)
+        arrays = {"count": np.array(len(hulls)), "seconds": np.array(seconds)}
+        for i, (v, f) in enumerate(hulls):
+            arrays[f"v{i}"], arrays[f"f{i}"] = v, f
+        with tempfile.NamedTemporaryFile(dir=self.directory, suffix=".tmp", delete=False) as tmp:
+            np.savez(tmp, **arrays)
+        os.replace(tmp.name, self.directory / f"{key}.npz")
