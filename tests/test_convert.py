@@ -258,3 +258,26 @@ def test_convert_command_line_help_and_tool_wrapper():
                     [sys.executable, str(REPO / "tools" / "convert_partnet.py"), "--help"]):
         out = subprocess.run(command, capture_output=True, text=True)
         assert out.returncode == 0 and "--target-size" in out.stdout and "--rigid" in out.stdout
+
+
+def test_screw_chain_and_continuous_joints_become_moving_bodies(tmp_path):
+    """A screw (`slider+`) is a prismatic joint to a `*_helper` link plus a continuous joint; both must move."""
+    folder = Path(shutil.copytree(SAMPLES / "103619", tmp_path / "src" / "103619"))
+    urdf = folder / "mobility.urdf"
+    text = urdf.read_text()
+    text = text.replace('<joint name="joint_3" type="fixed">', '<joint name="joint_3" type="prismatic">')
+    text = text.replace('<joint name="joint_2" type="fixed">', '<joint name="joint_2" type="continuous">')
+    urdf.write_text(text)
+    (record,) = convert_objects([folder], tmp_path / "out", _fast_config(tmp_path / "cache"), progress=False)
+    assert record.status == "converted", record.reason
+    model = mujoco.MjModel.from_xml_path(str(record.output / "object.xml"))
+    slide, hinge = model.joint("joint_3"), model.joint("joint_2")
+    assert slide.type == mujoco.mjtJoint.mjJNT_SLIDE and slide.limited
+    assert hinge.type == mujoco.mjtJoint.mjJNT_HINGE and not hinge.limited
+    assert model.body("link_2_helper").mass[0] > 0 and model.body("link_2").mass[0] > 0
+
+
+def test_unreadable_mesh_is_named(bucket_copy, tmp_path):
+    (bucket_copy / "textured_objs" / "original-1.obj").write_bytes(b"\x00\xff garbage \x01" * 50)
+    (record,) = convert_objects([bucket_copy], tmp_path / "out", _fast_config(tmp_path / "cache"), progress=False)
+    assert record.status == "failed" and "original-1.obj" in record.reason
