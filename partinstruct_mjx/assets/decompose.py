@@ -29,7 +29,7 @@ Hull = tuple[np.ndarray, np.ndarray]
 
 @dataclass(frozen=True)
 class DecompositionConfig:
-    """CoACD settings and budgets. `fast()` trades accuracy for seconds (tests, previews)."""
+    """CoACD settings and budgets. The defaults are the quality preset; see `preset()` for the others."""
 
     max_hulls_per_part: int = 8
     max_hulls_per_object: int = 16
@@ -44,8 +44,22 @@ class DecompositionConfig:
 
     @classmethod
     def fast(cls) -> DecompositionConfig:
+        """Seconds per object: tests and previews."""
         return cls(threshold=0.25, preprocess_resolution=25, resolution=400, mcts_iterations=20, mcts_nodes=8,
                    mcts_max_depth=2)
+
+    @classmethod
+    def balanced(cls) -> DecompositionConfig:
+        """About 2.7x faster than quality on the built-in objects, with the same budgets."""
+        return cls(threshold=0.1, preprocess_resolution=40, resolution=1000, mcts_iterations=60, mcts_nodes=15)
+
+    @classmethod
+    def preset(cls, name: str) -> DecompositionConfig:
+        """'quality' (the defaults), 'balanced' or 'fast'."""
+        presets = {"quality": cls, "balanced": cls.balanced, "fast": cls.fast}
+        if name not in presets:
+            raise AssetError(f"unknown decomposition preset '{name}'; choose from {', '.join(presets)}")
+        return presets[name]()
 
 
 def hull_budgets(areas: list[float], config: DecompositionConfig) -> list[int]:

@@ -51,6 +51,21 @@ class _Worker:
         self.process.join(timeout=5)
 
 
+def _poll(worker: _Worker, timeout: float) -> tuple[JobResult | None, bool]:
+    """(the job's result or None while it runs, whether the worker can take another job)."""
+    key = worker.job[0]
+    try:
+        if worker.connection.poll():
+            return worker.connection.recv(), True
+    except (EOFError, OSError):
+        return JobResult(key, error=f"worker died (exit code {worker.process.exitcode})"), False
+    if not worker.process.is_alive():
+        return JobResult(key, error=f"worker died (exit code {worker.process.exitcode})"), False
+    if time.monotonic() - worker.started > timeout:
+        return JobResult(key, error=f"timed out after {timeout:g} s"), False
+    return None, True
+
+
 def run_jobs(function: Callable, jobs: list[tuple[Any, tuple]], workers: int, timeout: float,
              poll_interval: float = 0.02) -> Iterator[JobResult]:
     """Run `function(*args)` for each (key, args) in `jobs` on `workers` processes; yield results as they finish.
@@ -68,16 +83,15 @@ def run_jobs(function: Callable, jobs: list[tuple[Any, tuple]], workers: int, ti
                     worker.job = pending.pop()
                     worker.started = time.monotonic()
                     worker.connection.send(worker.job)
-                elif worker.job is not None and worker.connection.poll():
-                    yield worker.connection.recv()
+                elif worker.job is not None:
+                    result, healthy = _poll(worker, timeout)
+                    if result is None:
+                        continue
+                    yield result
                     worker.job = None
-                elif worker.job is not None and (time.monotonic() - worker.started > timeout
-                                                 or not worker.process.is_alive()):
-                    reason = (f"timed out after {timeout:g} s" if worker.process.is_alive()
-                              else f"worker died (exit code {worker.process.exitcode})")
-                    yield JobResult(worker.job[0], error=reason)
-                    worker.stop(kill=True)
-                    pool[index] = _Worker(context, function)
+                    if not healthy:
+                        worker.stop(kill=True)
+                        pool[index] = _Worker(context, function)
             time.sleep(poll_interval)
     finally:
         for worker in pool:
