@@ -312,14 +312,21 @@ def test_subset_matches_full_run_and_bad_arguments_are_named(tmp_path):
         generate(tmp_path, instances=0)
 
 
-def test_cli_writes_the_requested_subset(tmp_path, capsys):
+def test_cli_builds_the_requested_subset(tmp_path, capsys):
+    """The one-command build: PartNet-format sources, converted objects, a catalog with splits."""
     loader = importlib.util.spec_from_file_location("make_builtin_objects", REPO / "tools" / "make_builtin_objects.py")
     cli = importlib.util.module_from_spec(loader)
     loader.loader.exec_module(cli)
-    out = tmp_path / "lib"
-    assert cli.main(["--out", str(out), "--instances", "1", "--categories", "box", "mug"]) == 0
-    assert sorted(p.name for p in out.iterdir()) == ["box", "mug"]
-    assert (out / "mug" / "mug_000" / "mobility.urdf").is_file() and "wrote 2 objects" in capsys.readouterr().out
+    sources, assets = tmp_path / "src", tmp_path / "assets"
+    arguments = ["--out", str(assets), "--sources", str(sources), "--preset", "fast", "--sheet", "-", "--report", "-",
+                 "--instances", "1", "--categories", "box", "mug"]
+    assert cli.main(arguments) == 0
+    assert sorted(p.name for p in sources.iterdir()) == ["box", "mug"]
+    assert (sources / "mug" / "mug_000" / "mobility.urdf").is_file()
+    assert (assets / "objects" / "mug" / "mug_000" / "object.xml").is_file()
+    catalog = json.loads((assets / "catalog.json").read_text())["objects"]
+    assert sorted(e["id"] for e in catalog) == ["box_000", "mug_000"] and all(e["splits"] for e in catalog)
+    assert "2 converted" in capsys.readouterr().out
     with pytest.raises(SystemExit) as failure:
-        cli.main(["--out", str(out), "--categories", "spoon"])
+        cli.main(["--out", str(assets), "--sources", str(sources), "--categories", "spoon"])
     assert failure.value.code == 2 and "'spoon'" in capsys.readouterr().err
