@@ -1,4 +1,4 @@
-"""The `partinstruct` command line: simulate, convert, bench."""
+"""The `partinstruct` command line: simulate, convert, episodes, bench."""
 
 from __future__ import annotations
 
@@ -30,17 +30,22 @@ def main(argv: list[str] | None = None) -> int:
     sim.set_defaults(func=_simulate)
 
     _add_convert_parser(commands)
+    from partinstruct_mjx.tasks.episodes_cli import add_episodes_parser
+
+    add_episodes_parser(commands)
 
     bench = commands.add_parser(
         "bench", help="measure speed (CPU backend, conversion) and write docs/benchmarks.md",
         description="cpu_backend: env steps/s of the mujoco (C, CPU-thread) backend at several batch sizes, medians of "
                     "repeated runs. convert: conversion seconds, hulls and vertices per object of --sources, with the "
-                    "default (quality) CoACD settings and an empty cache.")
-    bench.add_argument("suite", nargs="?", default="cpu_backend", choices=["cpu_backend", "convert"],
+                    "default (quality) CoACD settings and an empty cache. ik: batched JAX IK solves/s on the current "
+                    "JAX device (compile time separate) and how many targets it and mink reach.")
+    bench.add_argument("suite", nargs="?", default="cpu_backend", choices=["cpu_backend", "convert", "ik"],
                        help="what to measure (default cpu_backend)")
     bench.add_argument("--sources", type=Path, nargs="+", default=[Path("../shared/partnet_samples")],
                        help="convert suite: PartNet-Mobility folders (default ../shared/partnet_samples)")
-    bench.add_argument("--batch-sizes", type=int, nargs="+", default=[1, 2, 8, 32], help="default: 1 2 8 32")
+    bench.add_argument("--batch-sizes", type=int, nargs="+", default=None,
+                       help="default: 1 2 8 32 (cpu_backend), 1 64 1024 16384 (ik)")
     bench.add_argument("--steps", type=int, default=200, help="control steps per timed run (default 200)")
     bench.add_argument("--repeats", type=int, default=5, help="timed runs per batch size (default 5)")
     bench.add_argument("--threads", type=int, default=None, help="worker threads/processes (default: all cores)")
@@ -170,6 +175,14 @@ def _bench(args) -> int:
             print(f"{r.object_id:<12} {r.category:<12} {r.status:<9} {r.seconds:>7.1f} s {r.hulls:>3} hulls "
                   f"{r.vertices:>4} vertices {r.reason}")
         title, heading, table = "convert", "Conversion (PartNet-Mobility samples)", conversion.markdown(records, wall, config)
+    elif args.suite == "ik":
+        from partinstruct_mjx.bench import ik
+        from partinstruct_mjx.sim.scene import build_scene
+
+        results = ik.run(build_scene(), batch_sizes=tuple(args.batch_sizes or (1, 64, 1024, 16384)))
+        table = ik.markdown(results)
+        print(table)
+        title, heading = f"ik_{results.device.lower().replace(' ', '_')}", f"Inverse kinematics ({results.device})"
     else:
         title, heading, table = "cpu_backend", "CPU backend (C MuJoCo, thread pool)", _bench_cpu_backend(args)
     body = f"## {heading}\n\n" + provenance_lines(provenance(), command) + "\n" + table
@@ -185,7 +198,7 @@ def _bench_cpu_backend(args) -> str:
 
     scene = build_scene()
     results = []
-    for batch in args.batch_sizes:
+    for batch in args.batch_sizes or [1, 2, 8, 32]:
         result = cpu_backend.measure(scene, batch, args.steps, args.repeats, args.threads)
         results.append(result)
         print(f"batch {batch:>5}: {result.env_steps_per_s:>10,.0f} env steps/s  ({result.threads} threads)")

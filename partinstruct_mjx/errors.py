@@ -11,3 +11,7 @@ class AssetError(PartInstructError):
 
 class SceneError(PartInstructError):
     """A scene cannot be assembled or a backend was given inconsistent input."""
+
+
+class TaskError(PartInstructError):
+    """A task, skill, part, direction or episode is unknown, malformed or impossible."""

@@ -41,7 +41,6 @@ class MujocoBackend:
         self._state = empty_scene_state(batch_size, m.nq, m.nv, m.nbody)
         self._ctrl = np.tile(panda.HOME_CTRL, (batch_size, 1))
         self._force6 = [np.zeros(6) for _ in range(batch_size)]
-        self._gripper_act_adr = m.actuator(panda.GRIPPER_ACTUATOR).actadr[0]
 
     @property
     def control_dt(self) -> float:
@@ -68,24 +67,13 @@ class MujocoBackend:
         Returns:
           The SceneState after `config.settle_steps` control steps with the robot held at home (spec 1.4b).
         """
-        b = self.batch_size
-        xy = np.broadcast_to(np.asarray([0.0, -0.03]) if object_xy is None else np.asarray(object_xy, float), (b, 2))
-        quat = np.broadcast_to([1.0, 0, 0, 0] if object_quat is None else np.asarray(object_quat, float), (b, 4))
-        scene = self.scene
+        qpos, act = initial_positions(self.scene, self.batch_size, object_xy, object_quat)
         for i, data in enumerate(self.datas):
             mujoco.mj_resetData(self.model, data)
-            data.qpos[scene.arm_qpos_adr] = panda.HOME_ARM_QPOS
-            data.qpos[scene.finger_qpos_adr] = panda.FINGER_OPEN
-            q = quat[i] / np.linalg.norm(quat[i])
-            adr = scene.object_qpos_adr
-            data.qpos[adr:adr + 7] = [xy[i, 0], xy[i, 1], 0.0, *q]
-            mujoco.mj_kinematics(self.model, data)
-            data.qpos[adr + 2] = TABLE_HEIGHT + DROP_CLEARANCE - object_z_range(scene, data)[0]
-            data.ctrl[:] = panda.HOME_CTRL
-            data.act[self._gripper_act_adr] = panda.FINGER_OPEN
+            data.qpos[:], data.act[:], data.ctrl[:] = qpos[i], act[i], panda.HOME_CTRL
             mujoco.mj_forward(self.model, data)
         self._ctrl[:] = panda.HOME_CTRL
-        for _ in range(scene.config.settle_steps):
+        for _ in range(self.scene.config.settle_steps):
             self._run(self._step_chunk)
         return self._run(self._extract_chunk)
 
@@ -178,6 +166,31 @@ class MujocoBackend:
                 out.contact_pos[i, finger, slot] = data.contact.pos[c]
                 out.contact_force[i, finger, slot] = force
                 out.contact_geom[i, finger, slot] = other
+
+
+def initial_positions(scene: Scene, batch_size: int, object_xy=None, object_quat=None) -> tuple[np.ndarray, np.ndarray]:
+    """(B, nq) joint positions and (B, na) actuator states at reset, before settling (spec 1.4b).
+
+    Robot at home with the gripper open; the object at (x, y) (default (0, -0.03)) with orientation (w, x, y, z)
+    (default identity), its lowest point DROP_CLEARANCE above the table.
+    """
+    model = scene.model
+    xy = np.broadcast_to(np.asarray([0.0, -0.03]) if object_xy is None else np.asarray(object_xy, float),
+                         (batch_size, 2))
+    quat = np.broadcast_to([1.0, 0, 0, 0] if object_quat is None else np.asarray(object_quat, float), (batch_size, 4))
+    data = mujoco.MjData(model)
+    qpos, act = np.zeros((batch_size, model.nq)), np.zeros((batch_size, model.na))
+    adr = scene.object_qpos_adr
+    for i in range(batch_size):
+        data.qpos[:] = model.qpos0
+        data.qpos[scene.arm_qpos_adr] = panda.HOME_ARM_QPOS
+        data.qpos[scene.finger_qpos_adr] = panda.FINGER_OPEN
+        data.qpos[adr:adr + 7] = [xy[i, 0], xy[i, 1], 0.0, *(quat[i] / np.linalg.norm(quat[i]))]
+        mujoco.mj_kinematics(model, data)
+        data.qpos[adr + 2] = TABLE_HEIGHT + DROP_CLEARANCE - object_z_range(scene, data)[0]
+        qpos[i] = data.qpos
+        act[i, model.actuator(panda.GRIPPER_ACTUATOR).actadr[0]] = panda.FINGER_OPEN
+    return qpos, act
 
 
 def object_z_range(scene: Scene, data: mujoco.MjData) -> tuple[float, float]:

@@ -1,0 +1,118 @@
+"""The `mjx` backend: a batch of MuJoCo XLA states stepped together (vmapped, jitted), for GPUs.
+
+Same interface and the same SceneState as the `mujoco` backend; the state stays on the device. On a CPU it works
+but is far slower than C MuJoCo (DESIGN.md): use it there only for short checks.
+"""
+
+from __future__ import annotations
+
+from functools import partial
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from mujoco import mjx
+
+from partinstruct_mjx.errors import SceneError
+from partinstruct_mjx.sim import panda
+from partinstruct_mjx.sim.mujoco_backend import initial_positions
+from partinstruct_mjx.sim.scene import Scene
+from partinstruct_mjx.sim.state import MAX_FINGER_CONTACTS, SceneState
+
+
+class MjxBackend:
+    """Steps B copies of a scene with MJX; `reset` and `step` return the batched SceneState (device arrays)."""
+
+    def __init__(self, scene: Scene, batch_size: int):
+        if batch_size < 1:
+            raise SceneError(f"batch_size must be >= 1, got {batch_size}")
+        self.scene = scene
+        self.batch_size = batch_size
+        self.model = mjx.put_model(scene.model)
+        self.data = None
+        self._indices = scene_indices(scene)
+
+    def close(self) -> None:
+        """Nothing to release (kept for interface parity with MujocoBackend)."""
+
+    def reset(self, object_xy=None, object_quat=None) -> SceneState:
+        """Robot at home, objects placed as given, then `settle_steps` control steps on the device (spec 1.4b)."""
+        qpos, act = initial_positions(self.scene, self.batch_size, object_xy, object_quat)
+        ctrl = np.tile(panda.HOME_CTRL, (self.batch_size, 1))
+        data = jax.vmap(lambda q, a, c: mjx.make_data(self.model).replace(qpos=q, act=a, ctrl=c))(
+            jnp.asarray(qpos), jnp.asarray(act), jnp.asarray(ctrl))
+        data = _forward(self.model, data)
+        for _ in range(self.scene.config.settle_steps):
+            data = _step(self.model, data, jnp.asarray(ctrl), self.scene.config.substeps)
+        self.data = data
+        return _extract(self.model, data, self._indices)
+
+    def step(self, ctrl) -> SceneState:
+        """Apply actuator targets (B, 8) for one control step."""
+        ctrl = jnp.asarray(ctrl)
+        if ctrl.shape != (self.batch_size, panda.NUM_CTRL):
+            raise SceneError(f"ctrl must have shape ({self.batch_size}, {panda.NUM_CTRL}), got {ctrl.shape}")
+        self.data = _step(self.model, self.data, ctrl, self.scene.config.substeps)
+        return _extract(self.model, self.data, self._indices)
+
+
+def scene_indices(scene: Scene) -> dict:
+    """The addresses `extract_state` reads (a pytree, so jitted functions take it as an argument)."""
+    return {
+        "arm": jnp.asarray(scene.arm_qpos_adr), "finger": jnp.asarray(scene.finger_qpos_adr),
+        "tcp": scene.tcp_site, "hand": scene.hand_body, "object": scene.object_body,
+        "geom_finger": jnp.asarray(scene.geom_finger),
+    }
+
+
+@jax.jit
+def _forward(model, data):
+    return jax.vmap(mjx.forward, in_axes=(None, 0))(model, data)
+
+
+@partial(jax.jit, static_argnames="substeps")
+def _step(model, data, ctrl, substeps: int):
+    def one(d, c):
+        d = d.replace(ctrl=c)
+        return jax.lax.fori_loop(0, substeps, lambda _, x: mjx.step(model, x), d)
+
+    return jax.vmap(one)(data, ctrl)
+
+
+def _normal_forces(efc_force, efc_address, condim) -> jnp.ndarray:
+    """Normal force of every contact: the sum of its pyramid rows (pyramidal cones, as the scene uses)."""
+    rows = jnp.where(condim == 1, 1, 2 * (condim - 1))
+    width = 2 * (6 - 1)
+    index = jnp.clip(efc_address[:, None] + jnp.arange(width), 0, efc_force.shape[0] - 1)
+    used = (jnp.arange(width) < rows[:, None]) & (efc_address[:, None] >= 0)
+    return jnp.where(used, efc_force[index], 0.0).sum(axis=1)
+
+
+@jax.jit
+def _extract(model, data, indices) -> SceneState:
+    return jax.vmap(extract_state, in_axes=(None, 0, None))(model, data, indices)
+
+
+def extract_state(model, d, indices) -> SceneState:
+    """One environment's SceneState from its mjx.Data (the same fields the mujoco backend fills)."""
+    contact = d._impl.contact
+    forces = _normal_forces(d._impl.efc_force, contact.efc_address, contact.dim)
+    finger = indices["geom_finger"][contact.geom]
+    slots = []
+    for side in (0, 1):
+        on_finger = finger == side
+        touches = on_finger.any(axis=1) & (forces > 0)
+        other = jnp.where(on_finger[:, 0], contact.geom[:, 1], contact.geom[:, 0])
+        score, index = jax.lax.top_k(jnp.where(touches, forces, -1.0), MAX_FINGER_CONTACTS)
+        used = score > 0
+        slots.append((jnp.where(used[:, None], contact.pos[index], 0.0), jnp.where(used, score, 0.0),
+                      jnp.where(used, other[index], -1).astype(jnp.int32)))
+    return SceneState(
+        time=d.time, qpos=d.qpos, qvel=d.qvel,
+        arm_qpos=d.qpos[indices["arm"]], finger_qpos=d.qpos[indices["finger"]],
+        tcp_pos=d.site_xpos[indices["tcp"]], tcp_quat=d.xquat[indices["hand"]],
+        object_pos=d.xpos[indices["object"]], object_quat=d.xquat[indices["object"]],
+        body_pos=d.xpos, body_quat=d.xquat,
+        contact_pos=jnp.stack([s[0] for s in slots]), contact_force=jnp.stack([s[1] for s in slots]),
+        contact_geom=jnp.stack([s[2] for s in slots]),
+    )

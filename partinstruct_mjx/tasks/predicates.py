@@ -1,0 +1,99 @@
+"""Goal predicates (spec 4) as pure JAX functions of one environment's SceneState rows; vmap them for a batch.
+
+Thresholds are the original's. Where we measure differently (contacts carry the touched geom, so GRASPING uses part
+labels instead of a 3 mm point search for semantic parts; fingers touching each other is read from the finger
+joints instead of stepping the simulation) docs/differences.md says so. Nothing here advances the simulation.
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+
+from partinstruct_mjx.control.rotations import quat_rotate
+from partinstruct_mjx.sim import panda
+from partinstruct_mjx.sim.scene import TABLE_HEIGHT
+from partinstruct_mjx.tasks.part_geometry import PartGeometry, world_points
+
+ON_TABLE_DISTANCE = 0.002
+"""ON: the object's lowest surface point within this of the table top (the original: 1 mm between the bodies;
+surface samples sit up to ~1 mm above the true lowest point)."""
+GRASP_FORCE = 20.0
+"""GRASPING: newtons of normal force one finger must press on the object (summed over its contacts)."""
+SPATIAL_CONTACT_DISTANCE = 0.006
+"""GRASPING a spatial part: a finger contact within this of the region's points (sample spacing is ~4 mm)."""
+FINGERS_CLOSED_WIDTH = 0.004
+"""TOUCHING: the fingers count as closed onto each other below this pad distance."""
+TOUCH_DISTANCE = 0.01
+FINGERTIP_OFFSET = 0.05625
+"""Fingertip point = TCP + this along the TCP's z axis (spec 1.3)."""
+GRIPPER_OPEN_TOLERANCE = 0.005
+MIN_TCP_DISTANCE = 0.05
+FACING_ANGLE = 0.5
+
+
+def part_cloud(state, geo: PartGeometry, masks: jnp.ndarray, part: jnp.ndarray):
+    """World points (M, 3) and validity (M,) of part row `part` for one environment; `masks` (7, M) are spatial."""
+    points = world_points(state.body_pos, state.body_quat, geo.points[part], geo.bodies[part])
+    spatial = part - geo.num_semantic
+    is_spatial = (spatial >= 0) & (spatial < masks.shape[0])
+    mask = jnp.where(is_spatial, masks[jnp.clip(spatial, 0, masks.shape[0] - 1)], True)
+    return points, geo.valid[part] & mask
+
+
+def object_points(state, geo: PartGeometry) -> jnp.ndarray:
+    """World points of the whole object (M, 3)."""
+    return world_points(state.body_pos, state.body_quat, geo.points[geo.whole], geo.bodies[geo.whole])
+
+
+def on_table(state, geo: PartGeometry) -> jnp.ndarray:
+    return object_points(state, geo)[:, 2].min() <= TABLE_HEIGHT + ON_TABLE_DISTANCE
+
+
+def gripper_open(state) -> jnp.ndarray:
+    return jnp.abs(state.finger_qpos[0] - panda.FINGER_OPEN) < GRIPPER_OPEN_TOLERANCE
+
+
+def min_distance(state) -> jnp.ndarray:
+    return jnp.linalg.norm(state.object_pos - state.tcp_pos) > MIN_TCP_DISTANCE
+
+
+def at_position(state, target: jnp.ndarray, threshold: jnp.ndarray) -> jnp.ndarray:
+    return jnp.linalg.norm(state.object_pos - target) < threshold
+
+
+def facing(state, geo, masks, part, direction: jnp.ndarray, threshold=FACING_ANGLE) -> jnp.ndarray:
+    """The vector from the object origin to the part's mean point is within `threshold` rad of `direction`."""
+    points, valid = part_cloud(state, geo, masks, part)
+    mean = (points * valid[:, None]).sum(axis=0) / jnp.maximum(valid.sum(), 1)
+    vector = mean - state.object_pos
+    cosine = vector @ direction / jnp.maximum(jnp.linalg.norm(vector) * jnp.linalg.norm(direction), 1e-9)
+    return jnp.arccos(jnp.clip(cosine, -1.0, 1.0)) < threshold
+
+
+def grasping(state, geo, masks, part) -> jnp.ndarray:
+    """One finger presses the object with > 20 N and touches the part (any part for the whole-object row)."""
+    geom = state.contact_geom
+    on_object = (geom >= 0) & (geo.geom_part[jnp.maximum(geom, 0)] >= 0)
+    force = (state.contact_force * on_object).sum(axis=-1)
+    labelled = on_object & (geo.geom_part[jnp.maximum(geom, 0)] == part)
+    points, valid = part_cloud(state, geo, masks, part)
+    gap = jnp.linalg.norm(state.contact_pos[..., None, :] - points, axis=-1)
+    near = on_object & (jnp.where(valid, gap, jnp.inf).min(axis=-1) < SPATIAL_CONTACT_DISTANCE)
+    is_semantic = part < geo.num_semantic
+    on_part = jnp.where(part == geo.whole, on_object, jnp.where(is_semantic, labelled, near)).any(axis=-1)
+    return ((force > GRASP_FORCE) & on_part).any()
+
+
+def touching(state, geo, masks, part) -> jnp.ndarray:
+    """The gripper is closed and its fingertip point is within 1 cm of the part."""
+    tip = state.tcp_pos + quat_rotate(state.tcp_quat, jnp.array([0.0, 0.0, FINGERTIP_OFFSET]))
+    points, valid = part_cloud(state, geo, masks, part)
+    distance = jnp.where(valid, jnp.linalg.norm(points - tip, axis=-1), jnp.inf).min()
+    return (state.finger_qpos.sum() < FINGERS_CLOSED_WIDTH) & (distance < TOUCH_DISTANCE)
+
+
+def released(state, geo, masks) -> jnp.ndarray:
+    """The release effects (spec 5.2): not grasping, not touching, gripper open, gripper away from the object."""
+    whole = jnp.asarray(geo.whole)
+    return (~grasping(state, geo, masks, whole) & ~touching(state, geo, masks, whole) & gripper_open(state)
+            & min_distance(state))

@@ -1,0 +1,292 @@
+"""Which parts and directions make sense for an object at a pose: the slot rules of episode generation.
+
+Part slots get a role from the skill that uses them (grasp_obj, touch_obj, rotate_obj); direction slots from the
+skill they parameterise (a carry, a push, a rotation in the air or on the table). Rules, all from the object's part
+points at its rest configuration turned by the episode's yaw:
+
+* exposed: an approach direction (left, right, front, back, top; never from below) is free when the part's box,
+  grown by 0.1 x its diagonal, reaches as far along it as the rest of the object at the part's level: the object
+  points within the part's height range for a side approach, over the part's footprint for the top one (the
+  oracle's touch test, spec 8.5, compares with the whole object's box, which hides e.g. a bottle's neck behind
+  its wider body);
+* never a cavity (CAVITIES) or 'middle'; never grasped or touched at the 'bottom' (it rests on the table);
+* grasp: exposed, the smallest extent of the part's box <= 0.07 m (the gripper opens 8 cm), and either rising
+  >= 2 cm above the object's lowest point or at most 0.07 m wide horizontally (a flat part lying on the table, like
+  a laptop's base frame, can only be pinched from above across its width); not in GRASP_EXCLUDED;
+* touch: exposed;
+* rotate: centroid >= 2 cm from the object origin (FACING is measured from it);
+  in the air any direction but the one the part faces now; on the table only horizontal ones and only for parts
+  that face a horizontal direction now (a yaw turn cannot change a part that faces up); type 15 turns the part to
+  the opposite of the direction it faces now;
+* move / push: horizontal, the object stays in the workspace (p0 + 0.12 dir within WORKSPACE); a push towards dir
+  touches the part from the other side, so the part must be exposed on OPPOSITE[dir];
+* the parts of one episode are distinct (the paper rotates a part while holding another one).
+
+Test 3 holds out part combinations (see `held_out_combinations`).
+"""
+
+from __future__ import annotations
+
+import functools
+import itertools
+import math
+import zlib
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from types import MappingProxyType
+
+import jax
+import mujoco
+import numpy as np
+
+from partinstruct_mjx.errors import AssetError
+from partinstruct_mjx.tasks.instructions import instruction_slots
+from partinstruct_mjx.tasks.part_geometry import spatial_masks
+from partinstruct_mjx.tasks.task_types import task_type
+from partinstruct_mjx.tasks.vocabulary import (DIRECTIONS, HORIZONTAL, OPPOSITE, SPATIAL_PARTS, UNIT_DISTANCE,
+                                                nearest_direction)
+
+GRASP_EXCLUDED: dict[str, frozenset[str]] = {
+    "laptop": frozenset({"keyboard", "touchpad", "screen"}),  # flush panels: nothing to close the fingers on
+    "display": frozenset({"screen"}),  # flush panel inside the frame
+    "scissors": frozenset({"screw"}),  # pivot pin flush with the blades
+}
+"""Semantic parts per category that a two-finger gripper cannot close on although their box is thin."""
+
+CAVITIES = frozenset({"containing things"})
+"""The inside of a container: nothing to close the fingers on, reachable only through the opening, facing nowhere."""
+
+SPATIAL_WORDS = tuple(DIRECTIONS)
+"""Spatial parts used by generation ('middle' is never a slot value; it only exists for reading other files)."""
+
+APPROACHES = ("left", "right", "front", "back", "top")
+"""Directions the gripper comes from (never from below the table)."""
+
+MAX_GRASP_WIDTH = 0.07
+"""Widest cross-section (m) the gripper (8 cm opening) is asked to close on."""
+
+MIN_GRASP_HEIGHT = 0.02
+"""A part lower than this (m) above the table can only be pinched from above across its horizontal width."""
+
+MIN_FACING_OFFSET = 0.02
+"""Closest a rotated part's centroid may be to the object origin (m) for FACING to be well defined."""
+WORKSPACE = ((-0.2, 0.25), (-0.25, 0.35))
+"""x and y bounds a move or push must keep the object in."""
+
+OPPOSITE_TYPES = frozenset({15})
+"""Types whose rotation target is the opposite of the part's initial facing (paper: FACING(part, ~DIR_INIT))."""
+
+HELD_OUT_FRACTION = 0.25
+"""Share of each (category, type)'s part combinations that only Test 3 uses."""
+
+
+@dataclass(frozen=True)
+class ObjectGeometry:
+    """Surface points of an object at rest (all joints at 0) in its root frame, per semantic part and whole.
+
+    Arrays are (3, N): reductions over points run along contiguous rows.
+    """
+
+    part_names: tuple[str, ...]
+    part_points: tuple[np.ndarray, ...]
+    object_points: np.ndarray
+
+
+@dataclass(frozen=True)
+class PartView:
+    """What the slot rules need to know about one part at the episode's initial pose."""
+
+    width: float
+    """Smallest extent of the part's box in the object frame (m)."""
+    horizontal_width: float
+    """Smallest horizontal extent of that box (m): what a top-down pinch closes on."""
+    height: float
+    """How far the part rises above the object's lowest point (m)."""
+    offset: np.ndarray
+    """World-frame vector from the object origin to the part centroid (FACING's vector)."""
+    facing: str
+    """The direction word nearest to `offset`: where the part faces at the initial pose."""
+    exposed: frozenset[str]
+    """Approach directions from which the part is free."""
+
+
+@functools.lru_cache(maxsize=None)
+def load_object_geometry(object_dir: str) -> ObjectGeometry:
+    """Read parts.npz and move every point from its body's frame into the root frame at the rest pose."""
+    folder = Path(object_dir)
+    try:
+        model = mujoco.MjModel.from_xml_path(str(folder / "object.xml"))
+        with np.load(folder / "parts.npz") as arrays:
+            data = {key: arrays[key] for key in arrays.files}
+    except (OSError, ValueError, KeyError) as err:
+        raise AssetError(f"{folder}: cannot read object.xml / parts.npz ({err})") from err
+    state = mujoco.MjData(model)
+    mujoco.mj_kinematics(model, state)
+    body_ids = [mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, str(name)) for name in data["body_names"]]
+    rotations, origins = state.xmat.reshape(-1, 3, 3)[body_ids], state.xpos[body_ids]
+
+    def to_root(points, bodies):
+        return np.ascontiguousarray((np.einsum("nij,nj->ni", rotations[bodies], points) + origins[bodies]).T)
+
+    return ObjectGeometry(tuple(str(n) for n in data["part_names"]),
+                          tuple(to_root(p, b) for p, b in zip(data["points"], data["point_body"])),
+                          to_root(data["object_points"], data["object_point_body"]))
+
+
+def yaw_matrix(yaw: float) -> np.ndarray:
+    """Rotation about the world z axis."""
+    c, s = math.cos(yaw), math.sin(yaw)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+_APPROACH_AXES = np.array([DIRECTIONS[word] for word in APPROACHES])
+_spatial_masks = jax.jit(spatial_masks)
+
+
+def part_views(geometry: ObjectGeometry, yaw: float) -> dict[str, PartView]:
+    """Every semantic part and every spatial part (but 'middle', computed from the turned object's points as the
+    original does at reset) of the object turned by `yaw`."""
+    rotation = yaw_matrix(yaw)
+    world = rotation @ geometry.object_points
+    bottom = geometry.object_points[2].min()
+    points = dict(zip(geometry.part_names, geometry.part_points))
+    masks = np.asarray(_spatial_masks(world.T))
+    points.update({word: geometry.object_points[:, masks[SPATIAL_PARTS.index(word)]] for word in SPATIAL_WORDS})
+    return {name: _view(local, rotation, bottom, world) for name, local in points.items()}
+
+
+def _view(local: np.ndarray, rotation: np.ndarray, bottom: float, object_world: np.ndarray) -> PartView:
+    world = rotation @ local
+    lo, hi = world.min(axis=1), world.max(axis=1)
+    free = _reach(lo, hi) + 0.1 * np.linalg.norm(hi - lo) >= _reach_at_level(object_world, lo, hi)
+    local_lo, local_hi = local.min(axis=1), local.max(axis=1)
+    extent = local_hi - local_lo
+    offset = world.mean(axis=1)
+    return PartView(width=float(extent.min()), horizontal_width=float(extent[:2].min()),
+                    height=float(local_hi[2] - bottom), offset=offset, facing=nearest_direction(offset),
+                    exposed=frozenset(word for word, ok in zip(APPROACHES, free) if ok))
+
+
+def _reach(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """How far a box reaches along each approach direction."""
+    return np.maximum(_APPROACH_AXES @ lo, _APPROACH_AXES @ hi)
+
+
+def _reach_at_level(points: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """How far the object reaches along each approach direction next to the box lo..hi: side approaches among
+    points at its height, the top one among points over its footprint (-inf where there are none)."""
+    at_height = points[:, (points[2] >= lo[2]) & (points[2] <= hi[2])]
+    over = points[:, np.all((points[:2] >= lo[:2, None]) & (points[:2] <= hi[:2, None]), axis=0)]
+    reach = np.full(len(APPROACHES), -np.inf)
+    for i, (word, axis) in enumerate(zip(APPROACHES, _APPROACH_AXES)):
+        near = over if word == "top" else at_height
+        if near.shape[1]:
+            reach[i] = (axis @ near).max()
+    return reach
+
+
+@functools.lru_cache(maxsize=None)
+def part_roles(type_id: int) -> Mapping[str, str]:
+    """Part slot -> 'grasp', 'touch' or 'rotate' (the skill that uses it)."""
+    return MappingProxyType({step.part: step.name.removesuffix("_obj") for step in task_type(type_id).chain
+                             if step.part})
+
+
+@functools.lru_cache(maxsize=None)
+def direction_roles(type_id: int) -> Mapping[str, tuple[str, str | None]]:
+    """Direction slot -> (role, part slot it depends on); roles: move, push, rotate_air, rotate_table, opposite."""
+    roles, in_air, touched = {}, False, None
+    for step in task_type(type_id).chain:
+        if step.name == "touch_obj":
+            touched = step.part
+        elif step.name == "grasp_obj":
+            in_air = False
+        elif step.name == "move_gripper" and step.direction in ("top", "bottom"):
+            in_air = step.direction == "top"
+        elif step.name == "move_gripper":
+            roles[step.direction] = ("push", touched) if step.touching else ("move", None)
+        elif step.name == "rotate_obj":
+            role = "opposite" if type_id in OPPOSITE_TYPES else "rotate_air" if in_air else "rotate_table"
+            roles[step.direction] = (role, step.part)
+    return MappingProxyType(roles)
+
+
+def allowed_by_name(role: str, category: str, part: str) -> bool:
+    """The rules that depend on the part's name only."""
+    if part in CAVITIES or part == "middle":
+        return False
+    if role == "rotate":
+        return True
+    return part != "bottom" and (role == "touch" or part not in GRASP_EXCLUDED.get(category, ()))
+
+
+def fits_role(role: str, view: PartView) -> bool:
+    """The rules that depend on the part's geometry at the initial pose."""
+    if role == "grasp":
+        return (bool(view.exposed) and view.width <= MAX_GRASP_WIDTH
+                and (view.height >= MIN_GRASP_HEIGHT or view.horizontal_width <= MAX_GRASP_WIDTH))
+    if role == "touch":
+        return bool(view.exposed)
+    return float(np.linalg.norm(view.offset)) >= MIN_FACING_OFFSET
+
+
+def direction_candidates(role: str, view: PartView | None, moves: list[str]) -> list[str]:
+    """Valid words for a direction slot of `role` (`view`: the part it depends on; `moves`: workspace_moves)."""
+    if role == "move":
+        return moves
+    if role == "push":
+        return [w for w in moves if OPPOSITE[w] in view.exposed]
+    facing = view.facing
+    if role == "rotate_air":
+        return [w for w in DIRECTIONS if w != facing]
+    if facing not in HORIZONTAL or float(np.linalg.norm(view.offset[:2])) < MIN_FACING_OFFSET:
+        return []
+    return [OPPOSITE[facing]] if role == "opposite" else [w for w in HORIZONTAL if w != facing]
+
+
+def workspace_moves(position: tuple[float, float]) -> list[str]:
+    """Horizontal words a unit move can take the object along without leaving WORKSPACE."""
+    return [word for word in HORIZONTAL
+            if all(lo <= p + UNIT_DISTANCE * d <= hi for p, d, (lo, hi) in zip(position, DIRECTIONS[word], WORKSPACE))]
+
+
+def feasible_assignments(type_id: int, category: str, views: dict[str, PartView],
+                         position: tuple[float, float]) -> list[tuple[dict[str, str], dict[str, list[str]]]]:
+    """Every assignment of distinct parts to the type's part slots with, per direction slot, its valid words."""
+    roles, direction_slots = part_roles(type_id), direction_roles(type_id)
+    choices = {slot: [p for p, v in views.items() if allowed_by_name(role, category, p) and fits_role(role, v)]
+               for slot, role in roles.items()}
+    moves = workspace_moves(position)
+    words = {slot: {part: direction_candidates(role, views.get(part), moves) for part in choices.get(part_slot, [None])}
+             for slot, (role, part_slot) in direction_slots.items()}
+    assignments = []
+    for combo in itertools.product(*choices.values()):
+        if len(set(combo)) < len(combo):
+            continue
+        parts = dict(zip(roles, combo))
+        directions = {slot: words[slot][parts.get(part_slot)] for slot, (_, part_slot) in direction_slots.items()}
+        if all(directions.values()):
+            assignments.append((parts, directions))
+    return assignments
+
+
+def combination(type_id: int, parts: dict[str, str]) -> tuple[str, ...]:
+    """The parts a task sentence names, in slot order: what Test 3 recombines."""
+    return tuple(parts[slot] for slot in instruction_slots(type_id) if slot in part_roles(type_id))
+
+
+def held_out_combinations(category: str, type_id: int, semantic_parts) -> frozenset[tuple[str, ...]]:
+    """Test 3's part combinations for (category, type): never in train or test1.
+
+    Every combination the name rules allow (the category's semantic parts plus the spatial words) is ranked by the
+    CRC-32 of 'category|type|parts'; the first quarter (at least one) is held out. It depends only on the
+    category's part vocabulary, not on the seed, so every generated set agrees on it.
+    """
+    roles = part_roles(type_id)
+    named = [slot for slot in instruction_slots(type_id) if slot in roles]
+    vocabulary = sorted(set(semantic_parts)) + list(SPATIAL_WORDS)
+    choices = [[p for p in vocabulary if allowed_by_name(roles[slot], category, p)] for slot in named]
+    combos = [c for c in itertools.product(*choices) if len(set(c)) == len(c)]
+    combos.sort(key=lambda c: zlib.crc32(f"{category}|{type_id}|{'|'.join(c)}".encode()))
+    return frozenset(combos[:max(1, math.ceil(HELD_OUT_FRACTION * len(combos)))])

@@ -1,0 +1,236 @@
+"""Predicates, spatial parts and task progress on hand-built states of a real built-in object (mug_000)."""
+
+import jax
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from partinstruct_mjx import paths
+from partinstruct_mjx.errors import TaskError
+from partinstruct_mjx.sim.mujoco_backend import MujocoBackend
+from partinstruct_mjx.sim.scene import SceneConfig, build_scene
+from partinstruct_mjx.tasks import predicates, progress
+from partinstruct_mjx.tasks.part_geometry import load_part_geometry, spatial_masks
+from partinstruct_mjx.tasks.task_types import TASK_TYPES, task_type
+from partinstruct_mjx.tasks.vocabulary import DIRECTIONS, UNIT_DISTANCE, direction_vector
+
+MUG = paths.assets_root() / "objects" / "mug" / "mug_000" / "object.xml"
+UPDATE = jax.jit(progress.update, static_argnames="skill_mode")
+INITIAL = jax.jit(progress.initial_task_state)
+
+
+class World:
+    """A settled mug scene whose object pose, contacts, TCP and gripper can be set by hand."""
+
+    def __init__(self):
+        self.scene = build_scene(SceneConfig(object_xml=str(MUG)))
+        self.geo = load_part_geometry(self.scene)
+        with MujocoBackend(self.scene, 1) as backend:
+            self.base = jax.tree_util.tree_map(lambda x: np.array(x[0]), backend.reset())
+        self.origin = self.base.object_pos.copy()
+        geoms = np.asarray(self.geo.geom_part)
+        self.part_geom = {name: int(np.flatnonzero(geoms == i)[0]) for i, name in enumerate(self.geo.names)
+                          if (geoms == i).any()}
+
+    def state(self, offset=(0.0, 0.0, 0.0), rotation=Rotation.identity(), grasp=None, touch=None,
+              gripper=0.04, tcp=None, force=30.0):
+        """A SceneState row: object moved by `offset` and turned by `rotation` about its origin; optionally the
+        fingers pressing on part `grasp` with `force` N each, or closed with the fingertip on part `touch`."""
+        s = jax.tree_util.tree_map(np.copy, self.base)
+        body = self.scene.object_body
+        quat = np.roll((rotation * Rotation.from_quat(np.roll(self.base.object_quat, -1))).as_quat(), 1)
+        s.body_pos[body] = s.object_pos[:] = self.origin + np.asarray(offset)
+        s.body_quat[body] = s.object_quat[:] = quat
+        s.finger_qpos[:] = gripper
+        s.tcp_pos[:] = s.object_pos + [0.0, 0.0, 0.3] if tcp is None else tcp
+        s.tcp_quat[:] = [1.0, 0.0, 0.0, 0.0]
+        if grasp is not None:
+            point = self.part_point(s, grasp)
+            geom = self.part_geom.get(grasp, self.part_geom["body"])
+            s.contact_geom[:, 0] = geom
+            s.contact_force[:, 0] = force
+            s.contact_pos[:, 0] = point
+            s.finger_qpos[:] = 0.02
+        if touch is not None:
+            s.finger_qpos[:] = 0.0
+            s.tcp_pos[:] = self.part_point(s, touch) - [0.0, 0.0, predicates.FINGERTIP_OFFSET]
+        return s
+
+    def part_point(self, s, part, masks=None):
+        masks = spatial_masks(predicates.object_points(s, self.geo)) if masks is None else masks
+        points, valid = predicates.part_cloud(s, self.geo, masks, self.geo.index(part))
+        points, valid = np.asarray(points), np.asarray(valid)
+        return points[valid].mean(axis=0) if part in ("handle", "body") else points[valid][0]
+
+    def part_vector(self, s, part):
+        masks = spatial_masks(predicates.object_points(s, self.geo))
+        points, valid = predicates.part_cloud(s, self.geo, masks, self.geo.index(part))
+        return np.asarray(points)[np.asarray(valid)].mean(axis=0) - s.object_pos
+
+
+@pytest.fixture(scope="module")
+def world():
+    return World()
+
+
+def _masks(world, s):
+    return spatial_masks(predicates.object_points(s, world.geo))
+
+
+def test_on_table_and_lifted(world):
+    assert predicates.on_table(world.state(), world.geo)
+    assert not predicates.on_table(world.state(offset=(0, 0, 0.05)), world.geo)
+
+
+def test_grasping_needs_force_and_the_named_part(world):
+    geo, index = world.geo, world.geo.index
+    s = world.state(grasp="handle")
+    masks = _masks(world, s)
+    assert predicates.grasping(s, geo, masks, index("handle"))
+    assert predicates.grasping(s, geo, masks, geo.whole)
+    assert not predicates.grasping(s, geo, masks, index("body"))
+    weak = world.state(grasp="handle", force=10.0)
+    assert not predicates.grasping(weak, geo, masks, index("handle"))
+    assert not predicates.grasping(world.state(), geo, masks, geo.whole)
+
+
+def test_grasping_a_spatial_part_uses_contact_positions(world):
+    geo = world.geo
+    s = world.state(grasp="left")
+    masks = _masks(world, s)
+    assert predicates.grasping(s, geo, masks, geo.index("left"))
+    assert not predicates.grasping(s, geo, masks, geo.index("right"))
+
+
+def test_touching_needs_closed_fingers_near_the_part(world):
+    geo = world.geo
+    s = world.state(touch="handle")
+    masks = _masks(world, s)
+    assert predicates.touching(s, geo, masks, geo.index("handle"))
+    opened = s.replace(finger_qpos=np.array([0.02, 0.02]))
+    assert not predicates.touching(opened, geo, masks, geo.index("handle"))
+    far = s.replace(tcp_pos=s.tcp_pos + [0.0, 0.0, 0.05])
+    assert not predicates.touching(far, geo, masks, geo.index("handle"))
+
+
+@pytest.mark.parametrize("direction", ["left", "right", "front", "back"])
+def test_facing_each_direction(world, direction):
+    vector = world.part_vector(world.state(), "handle")
+    turn = np.arctan2(DIRECTIONS[direction][1], DIRECTIONS[direction][0]) - np.arctan2(vector[1], vector[0])
+    s = world.state(rotation=Rotation.from_euler("z", turn))
+    masks = _masks(world, s)
+    for other in ("left", "right", "front", "back", "top", "bottom"):
+        result = predicates.facing(s, world.geo, masks, world.geo.index("handle"), direction_vector(other))
+        assert bool(result) == (other == direction), other
+
+
+def test_release_gripper_open_and_distance(world):
+    geo = world.geo
+    free = world.state()
+    masks = _masks(world, free)
+    assert predicates.released(free, geo, masks)
+    assert predicates.gripper_open(free) and predicates.min_distance(free)
+    close = world.state(tcp=world.origin + [0.0, 0.0, 0.03])
+    assert not predicates.min_distance(close) and not predicates.released(close, geo, masks)
+    assert not predicates.released(world.state(grasp="body"), geo, masks)
+    assert predicates.at_position(free, free.object_pos + [0.01, 0, 0], 0.02)
+    assert not predicates.at_position(free, free.object_pos + [0.03, 0, 0], 0.02)
+
+
+def test_spatial_parts_lie_on_their_side(world):
+    s = world.state()
+    points = np.asarray(predicates.object_points(s, world.geo))
+    masks = np.asarray(_masks(world, s))
+    mean = {w: points[masks[i]].mean(axis=0) for i, w in enumerate(("left", "right", "front", "back", "top",
+                                                                     "bottom", "middle"))}
+    assert mean["left"][1] > mean["right"][1] and mean["back"][0] > mean["front"][0]
+    assert mean["top"][2] > mean["bottom"][2]
+    assert all(masks.sum(axis=1) > 0)
+
+
+def test_unknown_part_direction_and_task_type_are_named(world):
+    with pytest.raises(TaskError, match="unknown part 'wheel'"):
+        world.geo.index("wheel")
+    with pytest.raises(TaskError, match="unknown direction 'up'"):
+        direction_vector("up")
+    with pytest.raises(TaskError, match="task type '17' is out of range"):
+        task_type("17")
+    with pytest.raises(TaskError, match="unknown part 'wheel'"):
+        progress.compile_episodes([(1, task_type(1).build_chain({"P1": "wheel"}, {}))], world.geo)
+    with pytest.raises(TaskError, match="does not fit task type 3"):
+        progress.compile_episodes([(3, task_type(1).build_chain({"P1": "handle"}, {}))], world.geo)
+
+
+SLOTS = {"P1": "handle", "P2": "handle", "P3": "body"}
+
+
+def _directions(type_id: int) -> dict:
+    in_air = type_id in (8, 10, 11, 12, 16)
+    return {"D1": "left", "D2": "top" if in_air else "front"}
+
+
+def _script(world, chain):
+    """States in which each skill of `chain` has just succeeded, one after another."""
+    offset, rotation, states = np.zeros(3), Rotation.identity(), []
+    held = None
+    for step in chain:
+        if step.name == "grasp_obj":
+            held, touch, tcp = step.part, None, None
+        elif step.name == "touch_obj":
+            held, touch = None, step.part
+        elif step.name == "move_gripper":
+            offset = offset + UNIT_DISTANCE * direction_vector(step.direction)
+            if step.put_down:
+                offset[2] = 0.0
+        elif step.name == "rotate_obj":
+            current = world.part_vector(world.state(offset, rotation), step.part)
+            target = direction_vector(step.direction)
+            if offset[2] == 0.0:  # on the table: turn about the vertical only
+                angle = np.arctan2(target[1], target[0]) - np.arctan2(current[1], current[0])
+                turn = Rotation.from_euler("z", angle)
+            else:
+                turn, _ = Rotation.align_vectors([target], [current])
+            rotation = turn * rotation
+        elif step.name == "release_obj":
+            held = touch = None
+        if step.name == "release_obj":
+            states.append(world.state(offset, rotation))
+        elif step.name == "touch_obj" or (step.name == "move_gripper" and step.touching):
+            states.append(world.state(offset, rotation, touch=touch))
+        else:
+            states.append(world.state(offset, rotation, grasp=held))
+    return states
+
+
+@pytest.mark.parametrize("type_id", sorted(TASK_TYPES))
+def test_every_task_type_succeeds_in_skill_and_task_mode_on_its_script(world, type_id):
+    chain = task_type(type_id).build_chain(SLOTS, _directions(type_id))
+    compiled = progress.compile_episodes([(type_id, chain)], world.geo)
+    stack = lambda s: jax.tree_util.tree_map(lambda x: x[None], s)  # noqa: E731
+    start = stack(world.state())
+    skill = task = INITIAL(start, world.geo, compiled)
+    assert not UPDATE(skill, start, world.geo, skill_mode=True).success[0]
+    for number, state in enumerate(_script(world, chain), start=1):
+        skill = UPDATE(skill, stack(state), world.geo, skill_mode=True)
+        task = UPDATE(task, stack(state), world.geo, skill_mode=False)
+        assert int(skill.skill_index[0]) == number, (type_id, chain[number - 1], np.asarray(skill.goals_met))
+        assert float(skill.completion[0]) == pytest.approx(number / len(chain))
+    assert skill.success[0]
+    assert task.success[0], (type_id, np.asarray(task.goals_met), int(task.phase[0]))
+    assert float(task.completion[0]) == 1.0
+
+
+def test_task_mode_two_phases_complete_in_order(world):
+    """Type 5: slide then release; the release alone (phase 2 before phase 1) is not success."""
+    chain = task_type(5).build_chain({"P1": "handle"}, {"D1": "left"})
+    compiled = progress.compile_episodes([(5, chain)], world.geo)
+    stack = lambda s: jax.tree_util.tree_map(lambda x: x[None], s)  # noqa: E731
+    task = INITIAL(stack(world.state()), world.geo, compiled)
+    task = UPDATE(task, stack(world.state()), world.geo, skill_mode=False)
+    assert not task.success[0] and int(task.phase[0]) == 0
+    moved = world.state(offset=(0, UNIT_DISTANCE, 0), grasp="handle")
+    task = UPDATE(task, stack(moved), world.geo, skill_mode=False)
+    assert int(task.phase[0]) == 1 and not task.success[0]
+    assert float(task.completion[0]) == pytest.approx(3 / 4)
+    task = UPDATE(task, stack(world.state(offset=(0, UNIT_DISTANCE, 0))), world.geo, skill_mode=False)
+    assert task.success[0]
