@@ -31,22 +31,35 @@ MIN_TCP_DISTANCE = 0.05
 FACING_ANGLE = 0.5
 
 
-def part_cloud(state, geo: PartGeometry, masks: jnp.ndarray, part: jnp.ndarray):
-    """World points (M, 3) and validity (M,) of part row `part` for one environment; `masks` (7, M) are spatial."""
-    points = world_points(state.body_pos, state.body_quat, geo.points[part], geo.bodies[part])
+def world_clouds(state, geo: PartGeometry) -> jnp.ndarray:
+    """World points (K, M, 3) of every part row for one environment: transform once, then index per predicate."""
+    return world_points(state.body_pos, state.body_quat, geo.points, geo.bodies)
+
+
+def part_cloud(state, geo: PartGeometry, masks: jnp.ndarray, part: jnp.ndarray, world: jnp.ndarray | None = None):
+    """World points (M, 3) and validity (M,) of part row `part` for one environment; `masks` (7, M) are spatial.
+
+    `world` is `world_clouds(state, geo)` when the caller already has it (it saves the transform).
+    """
+    if world is None:
+        points = world_points(state.body_pos, state.body_quat, geo.points[part], geo.bodies[part])
+    else:
+        points = world[part]
     spatial = part - geo.num_semantic
     is_spatial = (spatial >= 0) & (spatial < masks.shape[0])
     mask = jnp.where(is_spatial, masks[jnp.clip(spatial, 0, masks.shape[0] - 1)], True)
     return points, geo.valid[part] & mask
 
 
-def object_points(state, geo: PartGeometry) -> jnp.ndarray:
+def object_points(state, geo: PartGeometry, world: jnp.ndarray | None = None) -> jnp.ndarray:
     """World points of the whole object (M, 3)."""
+    if world is not None:
+        return world[geo.whole]
     return world_points(state.body_pos, state.body_quat, geo.points[geo.whole], geo.bodies[geo.whole])
 
 
-def on_table(state, geo: PartGeometry) -> jnp.ndarray:
-    return object_points(state, geo)[:, 2].min() <= TABLE_HEIGHT + ON_TABLE_DISTANCE
+def on_table(state, geo: PartGeometry, world=None) -> jnp.ndarray:
+    return object_points(state, geo, world)[:, 2].min() <= TABLE_HEIGHT + ON_TABLE_DISTANCE
 
 
 def gripper_open(state) -> jnp.ndarray:
@@ -61,22 +74,22 @@ def at_position(state, target: jnp.ndarray, threshold: jnp.ndarray) -> jnp.ndarr
     return jnp.linalg.norm(state.object_pos - target) < threshold
 
 
-def facing(state, geo, masks, part, direction: jnp.ndarray, threshold=FACING_ANGLE) -> jnp.ndarray:
+def facing(state, geo, masks, part, direction: jnp.ndarray, threshold=FACING_ANGLE, world=None) -> jnp.ndarray:
     """The vector from the object origin to the part's mean point is within `threshold` rad of `direction`."""
-    points, valid = part_cloud(state, geo, masks, part)
+    points, valid = part_cloud(state, geo, masks, part, world)
     mean = (points * valid[:, None]).sum(axis=0) / jnp.maximum(valid.sum(), 1)
     vector = mean - state.object_pos
     cosine = vector @ direction / jnp.maximum(jnp.linalg.norm(vector) * jnp.linalg.norm(direction), 1e-9)
     return jnp.arccos(jnp.clip(cosine, -1.0, 1.0)) < threshold
 
 
-def grasping(state, geo, masks, part) -> jnp.ndarray:
+def grasping(state, geo, masks, part, world=None) -> jnp.ndarray:
     """One finger presses the object with > 20 N and touches the part (any part for the whole-object row)."""
     geom = state.contact_geom
     on_object = (geom >= 0) & (geo.geom_part[jnp.maximum(geom, 0)] >= 0)
     force = (state.contact_force * on_object).sum(axis=-1)
     labelled = on_object & (geo.geom_part[jnp.maximum(geom, 0)] == part)
-    points, valid = part_cloud(state, geo, masks, part)
+    points, valid = part_cloud(state, geo, masks, part, world)
     gap = jnp.linalg.norm(state.contact_pos[..., None, :] - points, axis=-1)
     near = on_object & (jnp.where(valid, gap, jnp.inf).min(axis=-1) < SPATIAL_CONTACT_DISTANCE)
     is_semantic = part < geo.num_semantic
@@ -84,16 +97,16 @@ def grasping(state, geo, masks, part) -> jnp.ndarray:
     return ((force > GRASP_FORCE) & on_part).any()
 
 
-def touching(state, geo, masks, part) -> jnp.ndarray:
+def touching(state, geo, masks, part, world=None) -> jnp.ndarray:
     """The gripper is closed and its fingertip point is within 1 cm of the part."""
     tip = state.tcp_pos + quat_rotate(state.tcp_quat, jnp.array([0.0, 0.0, FINGERTIP_OFFSET]))
-    points, valid = part_cloud(state, geo, masks, part)
+    points, valid = part_cloud(state, geo, masks, part, world)
     distance = jnp.where(valid, jnp.linalg.norm(points - tip, axis=-1), jnp.inf).min()
     return (state.finger_qpos.sum() < FINGERS_CLOSED_WIDTH) & (distance < TOUCH_DISTANCE)
 
 
-def released(state, geo, masks) -> jnp.ndarray:
+def released(state, geo, masks, world=None) -> jnp.ndarray:
     """The release effects (spec 5.2): not grasping, not touching, gripper open, gripper away from the object."""
     whole = jnp.asarray(geo.whole)
-    return (~grasping(state, geo, masks, whole) & ~touching(state, geo, masks, whole) & gripper_open(state)
-            & min_distance(state))
+    return (~grasping(state, geo, masks, whole, world) & ~touching(state, geo, masks, whole, world)
+            & gripper_open(state) & min_distance(state))

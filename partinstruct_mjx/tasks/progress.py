@@ -134,16 +134,19 @@ def compile_episodes(episodes: list[tuple[int, list[SkillStep]]], geo: PartGeome
 
 def evaluate(state, geo: PartGeometry, masks: jnp.ndarray, rows: GoalRows, p0: jnp.ndarray) -> jnp.ndarray:
     """(G,) truth of each goal row for one environment; padding rows are true."""
+    world = predicates.world_clouds(state, geo)
+    on_table = predicates.on_table(state, geo, world)
+    released = predicates.released(state, geo, masks, world)
 
     def one(kind, part, direction, offset, threshold):
         values = jnp.stack([
             jnp.asarray(True),
-            predicates.on_table(state, geo),
-            predicates.grasping(state, geo, masks, part),
-            predicates.touching(state, geo, masks, part),
-            predicates.facing(state, geo, masks, part, direction, threshold),
+            on_table,
+            predicates.grasping(state, geo, masks, part, world),
+            predicates.touching(state, geo, masks, part, world),
+            predicates.facing(state, geo, masks, part, direction, threshold, world),
             predicates.at_position(state, p0 + offset, threshold),
-            predicates.released(state, geo, masks),
+            released,
         ])
         return values[kind]
 
