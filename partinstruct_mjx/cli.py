@@ -1,4 +1,4 @@
-"""The `partinstruct` command line: simulate, convert, episodes, bench."""
+"""The `partinstruct` command line: simulate, convert, episodes, render, bench."""
 
 from __future__ import annotations
 
@@ -33,19 +33,23 @@ def main(argv: list[str] | None = None) -> int:
     from partinstruct_mjx.tasks.episodes_cli import add_episodes_parser
 
     add_episodes_parser(commands)
+    from partinstruct_mjx.obs.render_cli import add_render_parser
+
+    add_render_parser(commands)
 
     bench = commands.add_parser(
         "bench", help="measure speed (CPU backend, conversion) and write docs/benchmarks.md",
         description="cpu_backend: env steps/s of the mujoco (C, CPU-thread) backend at several batch sizes, medians of "
                     "repeated runs. convert: conversion seconds, hulls and vertices per object of --sources, with the "
                     "default (quality) CoACD settings and an empty cache. ik: batched JAX IK solves/s on the current "
-                    "JAX device (compile time separate) and how many targets it and mink reach.")
-    bench.add_argument("suite", nargs="?", default="cpu_backend", choices=["cpu_backend", "convert", "ik"],
+                    "JAX device (compile time separate) and how many targets it and mink reach. pointcloud: JAX point "
+                    "clouds/s on the current device (mug_000) and the OpenGL depth path for comparison.")
+    bench.add_argument("suite", nargs="?", default="cpu_backend", choices=["cpu_backend", "convert", "ik", "pointcloud"],
                        help="what to measure (default cpu_backend)")
     bench.add_argument("--sources", type=Path, nargs="+", default=[Path("../shared/partnet_samples")],
                        help="convert suite: PartNet-Mobility folders (default ../shared/partnet_samples)")
     bench.add_argument("--batch-sizes", type=int, nargs="+", default=None,
-                       help="default: 1 2 8 32 (cpu_backend), 1 64 1024 16384 (ik)")
+                       help="default: 1 2 8 32 (cpu_backend), 1 64 1024 16384 (ik), 1 16 256 (pointcloud)")
     bench.add_argument("--steps", type=int, default=200, help="control steps per timed run (default 200)")
     bench.add_argument("--repeats", type=int, default=5, help="timed runs per batch size (default 5)")
     bench.add_argument("--threads", type=int, default=None, help="worker threads/processes (default: all cores)")
@@ -183,6 +187,16 @@ def _bench(args) -> int:
         table = ik.markdown(results)
         print(table)
         title, heading = f"ik_{results.device.lower().replace(' ', '_')}", f"Inverse kinematics ({results.device})"
+    elif args.suite == "pointcloud":
+        from partinstruct_mjx import paths
+        from partinstruct_mjx.bench import pointcloud
+        from partinstruct_mjx.sim.scene import SceneConfig, build_scene
+
+        scene = build_scene(SceneConfig(object_xml=str(paths.assets_root() / "objects/mug/mug_000/object.xml")))
+        results = pointcloud.measure(scene, batch_sizes=tuple(args.batch_sizes or (1, 16, 256)))
+        table = pointcloud.markdown(results)
+        print(table)
+        title, heading = f"pointcloud_{results.device.lower().replace(' ', '_')}", f"Point clouds ({results.device})"
     else:
         title, heading, table = "cpu_backend", "CPU backend (C MuJoCo, thread pool)", _bench_cpu_backend(args)
     body = f"## {heading}\n\n" + provenance_lines(provenance(), command) + "\n" + table

@@ -92,11 +92,16 @@ class PartInstructEnv:
 
             self.backend = MjxBackend(self.scene, batch_size)
         self.episodes: list = []
+        self._target_rows = np.full((batch_size, progress.MAX_SKILLS), -1, np.int32)
+        self._surface = None
+        self._renderer = None
         self._update = jax.jit(progress.update, static_argnames="skill_mode")
         self._initial = jax.jit(progress.initial_task_state)
 
     def close(self) -> None:
         self.backend.close()
+        if self._renderer is not None:
+            self._renderer.close()
 
     def __enter__(self) -> PartInstructEnv:
         return self
@@ -120,6 +125,11 @@ class PartInstructEnv:
         quat = np.concatenate([poses[:, 3:4], poses[:, :3]], axis=1)
         data = self.backend.reset(xy, quat)
         self.episodes = list(episodes)
+        self._target_rows[:] = -1
+        for b, episode in enumerate(episodes):
+            for s, step in enumerate(episode.chain):
+                if step.part is not None:
+                    self._target_rows[b, s] = self.geometry.index(step.part)
         task = self._initial(data, self.geometry, compiled)
         limits = np.array([STEP_LIMIT_TEST4 if e.split == "test4" else STEP_LIMIT for e in episodes], np.int32)
         info = {"steps": jnp.zeros(self.batch_size, jnp.int32), "step_limit": jnp.asarray(limits),
@@ -148,6 +158,45 @@ class PartInstructEnv:
             return [e.task_instruction for e in self.episodes]
         index = np.minimum(np.asarray(state.task.skill_index), [len(e.chain) - 1 for e in self.episodes])
         return [e.skill_instructions[i] for e, i in zip(self.episodes, index)]
+
+    def target_parts(self, state: State) -> np.ndarray:
+        """(B,) part row of each scene's current target (the current skill's part, spec 2.1; -1 for move/release
+        and in task mode)."""
+        if not self.config.skill_mode:
+            return np.full(self.batch_size, -1, np.int32)
+        index = np.minimum(np.asarray(state.task.skill_index), progress.MAX_SKILLS - 1)
+        return self._target_rows[np.arange(self.batch_size), index]
+
+    def point_clouds(self, state: State, key: jax.Array, sampler: str = "fps") -> dict[str, jnp.ndarray]:
+        """Batched static-camera clouds from the JAX point renderer (no OpenGL): agentview_pcd (B, 1024, 3) in the
+        camera's optical frame, agentview_pcd_world, and agentview_part_pcd (B, 1024, 4) with the target column."""
+        from partinstruct_mjx.obs import point_renderer
+        from partinstruct_mjx.obs.cameras import AGENTVIEW, scene_camera
+
+        if self._surface is None:
+            self._surface = (point_renderer.surface_points(self.scene, self.geometry), scene_camera(self.scene, AGENTVIEW))
+        surface, camera = self._surface
+        parts = jnp.asarray(self.target_parts(state))
+        masks = jax.vmap(point_renderer.target_mask, in_axes=(None, None, 0, 0))(surface, self.geometry,
+                                                                                 state.task.masks, parts)
+        cloud = point_renderer.render_batch(surface, camera, jnp.asarray(state.data.body_pos),
+                                            jnp.asarray(state.data.body_quat), masks,
+                                            jax.random.split(key, self.batch_size), sampler=sampler)
+        return {"agentview_pcd": cloud.points, "agentview_pcd_world": cloud.world,
+                "agentview_part_pcd": jnp.concatenate([cloud.points, cloud.target[..., None]], axis=-1)}
+
+    def camera_observations(self, state: State, wrist: bool = False) -> list[dict[str, np.ndarray]]:
+        """Per scene, the OpenGL observations of spec 2.1 (RGB, part mask, depth clouds, optionally the wrist
+        camera); see `obs.depth_cloud.camera_observations`. Needs an OpenGL context (MUJOCO_GL=egl headless)."""
+        from partinstruct_mjx.obs.depth_cloud import camera_observations
+        from partinstruct_mjx.obs.images import ImageRenderer
+
+        if self._renderer is None:
+            self._renderer = ImageRenderer(self.scene, geometry=self.geometry)
+        parts = self.target_parts(state)
+        return [camera_observations(self._renderer, jax.tree_util.tree_map(lambda x: x[b], state.data),
+                                    None if parts[b] < 0 else int(parts[b]), state.task.masks[b], wrist)
+                for b in range(self.batch_size)]
 
     def _state(self, data: SceneState, task: progress.TaskState, info: dict) -> State:
         done = task.success | info["truncated"]

@@ -122,3 +122,21 @@ def test_mujoco_and_mjx_backends_agree_on_a_short_episode():
     np.testing.assert_allclose(finals[0][0], finals[1][0], atol=1e-3)
     np.testing.assert_allclose(finals[0][1], finals[1][1], atol=1e-4)
     np.testing.assert_array_equal(finals[0][2], finals[1][2])
+
+
+def test_camera_and_point_cloud_observations_mark_the_target_part(env):
+    """Skill 0 grasps the handle: both paths mark handle points and pixels, with spec 2.1's keys and shapes; a move
+    skill has no target part."""
+    state = env.reset(jax.random.PRNGKey(0), [_episode(3), _episode(5)])
+    assert list(env.target_parts(state)) == [env.geometry.index("handle")] * 2
+    clouds = env.point_clouds(state, jax.random.PRNGKey(1))
+    assert clouds["agentview_pcd"].shape == (2, 1024, 3) and clouds["agentview_part_pcd"].shape == (2, 1024, 4)
+    assert np.asarray(clouds["agentview_part_pcd"][..., 3]).sum() > 0
+    observations = env.camera_observations(state, wrist=True)
+    first = observations[0]
+    assert first["agentview_rgb"].shape == (300, 300, 3) and first["agentview_rgb"].dtype == np.uint8
+    assert first["agentview_part_mask"].shape == (300, 300) and first["agentview_part_mask"].sum() > 0
+    assert first["agentview_part_pcd"].shape == (1024, 4) and first["wrist_rgb"].shape == (300, 300, 3)
+    moved = state.replace(task=state.task.replace(skill_index=jnp.asarray([1, 1])))  # move: no target part
+    assert list(env.target_parts(moved)) == [-1, -1]
+    assert env.camera_observations(moved)[0]["agentview_part_mask"].sum() == 0

@@ -20,6 +20,8 @@ AGENTVIEW = "agentview"
 WRIST = "wrist"
 IMAGE_SIZE = 300
 """Both cameras render 300 x 300 (spec 1.5)."""
+PCD_SIZE = 1024
+"""Points per observation cloud (spec 2.1)."""
 
 _MUJOCO_TO_OPTICAL = np.diag([1.0, -1.0, -1.0])
 
