@@ -2,10 +2,8 @@
 
 import hashlib
 import json
-from pathlib import Path
 
 import numpy as np
-import pytest
 
 from partinstruct_mjx import paths
 from partinstruct_mjx.assets.catalog import load_catalog

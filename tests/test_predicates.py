@@ -175,7 +175,7 @@ def _script(world, chain):
     held = None
     for step in chain:
         if step.name == "grasp_obj":
-            held, touch, tcp = step.part, None, None
+            held, touch = step.part, None
         elif step.name == "touch_obj":
             held, touch = None, step.part
         elif step.name == "move_gripper":

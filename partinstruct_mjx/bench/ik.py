@@ -6,7 +6,6 @@ Both solve the same kinds of targets: TCP poses of random arm configurations ove
 
 from __future__ import annotations
 
-import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -16,6 +15,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
+from partinstruct_mjx.bench.timing import measure_throughput
 from partinstruct_mjx.control import jax_ik
 from partinstruct_mjx.control.mink_ik import MinkIK
 from partinstruct_mjx.control.scripted_pick import top_down_quat
@@ -115,20 +115,8 @@ def measure_jax(kin: jax_ik.ArmKinematics, targets: Targets, batch_size: int, co
     """Time `solve_ik` at one batch size (caches cleared first); each repeat runs calls for `min_solves` solves."""
     batch = targets.tiled(batch_size)
     args = [jax.device_put(jnp.asarray(a)) for a in (batch.seeds, batch.pos, batch.quat)]
-    jax.clear_caches()
-    start = time.perf_counter()
-    jax_ik.solve_ik(kin, *args, config)[0].block_until_ready()
-    first = time.perf_counter() - start
-    calls = math.ceil(min_solves / batch_size)
-    rates = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        for _ in range(calls):
-            q = jax_ik.solve_ik(kin, *args, config)[0]
-        q.block_until_ready()
-        rates.append(calls * batch_size / (time.perf_counter() - start))
-    median = float(np.median(rates))
-    return JaxResult(batch_size, max(first - batch_size / median, 0.0), median, (min(rates), max(rates)))
+    timing = measure_throughput(lambda: jax_ik.solve_ik(kin, *args, config)[0], batch_size, repeats, min_solves)
+    return JaxResult(batch_size, timing.compile_s, timing.per_s, timing.spread)
 
 
 def reached(kin: jax_ik.ArmKinematics, targets: Targets, config: jax_ik.IKConfig) -> np.ndarray:

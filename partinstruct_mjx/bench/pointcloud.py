@@ -6,7 +6,6 @@ camera, table/floor/background pixels dropped, the rest back-projected and farth
 
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import dataclass
 
@@ -14,6 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from partinstruct_mjx.bench.timing import measure_throughput
 from partinstruct_mjx.obs import point_renderer
 from partinstruct_mjx.obs.cameras import AGENTVIEW, Camera, scene_camera
 from partinstruct_mjx.sim.mujoco_backend import MujocoBackend
@@ -82,23 +82,9 @@ def _measure_jax(surface: point_renderer.SurfacePoints, camera: Camera, state: S
     args = (tile(state.body_pos), tile(state.body_quat), jnp.zeros((batch_size, surface.num_object), bool),
             jax.random.split(jax.random.PRNGKey(seed), batch_size))
 
-    def call():
-        return point_renderer.render_batch(surface, camera, *args, sampler=sampler).points
-
-    jax.clear_caches()
-    start = time.perf_counter()
-    call().block_until_ready()
-    first = time.perf_counter() - start
-    calls = math.ceil(min_clouds / batch_size)
-    rates = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        for _ in range(calls):
-            points = call()
-        points.block_until_ready()
-        rates.append(calls * batch_size / (time.perf_counter() - start))
-    median = float(np.median(rates))
-    return JaxResult(sampler, batch_size, max(first - batch_size / median, 0.0), median, (min(rates), max(rates)))
+    timing = measure_throughput(lambda: point_renderer.render_batch(surface, camera, *args, sampler=sampler).points,
+                                batch_size, repeats, min_clouds)
+    return JaxResult(sampler, batch_size, timing.compile_s, timing.per_s, timing.spread)
 
 
 def _measure_gl(scene: Scene, geometry: PartGeometry, state_row: SceneState,
