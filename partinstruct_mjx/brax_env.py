@@ -18,6 +18,7 @@ Requires brax (`pip install brax`).
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import jax
@@ -33,7 +34,7 @@ from partinstruct_mjx.errors import SceneError, TaskError
 from partinstruct_mjx.sim import panda
 from partinstruct_mjx.sim.mjx_backend import extract_state, scene_indices
 from partinstruct_mjx.sim.mujoco_backend import MujocoBackend
-from partinstruct_mjx.sim.scene import SceneConfig, build_scene
+from partinstruct_mjx.sim.scene import build_scene
 from partinstruct_mjx.sim.state import SceneState
 from partinstruct_mjx.tasks import progress
 from partinstruct_mjx.tasks.part_geometry import load_part_geometry
@@ -127,7 +128,7 @@ class BraxPartInstructEnv(Env):
         self.episodes = episodes
         self.episode_length = max(STEP_LIMIT_TEST4 if e.split == "test4" else STEP_LIMIT for e in episodes)
         """The longest step limit among the episodes (250, or 400 with test4): EpisodeWrapper's episode_length."""
-        self.scene = build_scene(SceneConfig(**{**config.scene.__dict__, "object_xml": str(object_xml)}))
+        self.scene = build_scene(replace(config.scene, object_xml=str(object_xml)))
         self.geometry = load_part_geometry(self.scene)
         self.kinematics = jax_ik.ArmKinematics.from_scene(self.scene)
         compiled = progress.compile_episodes([(e.task_type, list(e.chain)) for e in episodes], self.geometry)

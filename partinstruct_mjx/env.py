@@ -8,7 +8,7 @@ Success follows the episode's skill chain (skill mode, the evaluation default) o
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -79,7 +79,7 @@ class PartInstructEnv:
 
     def __init__(self, object_xml: str | Path, batch_size: int, config: EnvConfig = EnvConfig()):
         self.config = config
-        self.scene = build_scene(SceneConfig(**{**config.scene.__dict__, "object_xml": str(object_xml)}))
+        self.scene = build_scene(replace(config.scene, object_xml=str(object_xml)))
         self.batch_size = batch_size
         self.geometry = load_part_geometry(self.scene)
         self.kinematics = jax_ik.ArmKinematics.from_scene(self.scene)
