@@ -43,8 +43,9 @@ def main(argv: list[str] | None = None) -> int:
                     "repeated runs. convert: conversion seconds, hulls and vertices per object of --sources, with the "
                     "default (quality) CoACD settings and an empty cache. ik: batched JAX IK solves/s on the current "
                     "JAX device (compile time separate) and how many targets it and mink reach. pointcloud: JAX point "
-                    "clouds/s on the current device (mug_000) and the OpenGL depth path for comparison.")
-    bench.add_argument("suite", nargs="?", default="cpu_backend", choices=["cpu_backend", "convert", "ik", "pointcloud"],
+                    "clouds/s on the current device (mug_000) and the OpenGL depth path for comparison. pybullet: our CPU env "
+                    "vs PyBullet doing the same work the original's way, in one run.")
+    bench.add_argument("suite", nargs="?", default="cpu_backend", choices=["cpu_backend", "convert", "ik", "pointcloud", "pybullet"],
                        help="what to measure (default cpu_backend)")
     bench.add_argument("--sources", type=Path, nargs="+", default=[Path("../shared/partnet_samples")],
                        help="convert suite: PartNet-Mobility folders (default ../shared/partnet_samples)")
@@ -197,6 +198,18 @@ def _bench(args) -> int:
         table = pointcloud.markdown(results)
         print(table)
         title, heading = f"pointcloud_{results.device.lower().replace(' ', '_')}", f"Point clouds ({results.device})"
+    elif args.suite == "pybullet":
+        from partinstruct_mjx import paths
+        from partinstruct_mjx.bench import pybullet_baseline
+
+        mug = paths.assets_root() / "objects/mug/mug_000/object.xml"
+        baseline = pybullet_baseline.measure(steps=args.steps, repeats=args.repeats, object_xml=mug)
+        ours = {(batch, threads): pybullet_baseline.measure_partinstruct_env(mug, batch, args.steps, args.repeats,
+                                                                             threads)
+                for batch, threads in ((1, 1), (8, 1), (8, 2))}
+        table = pybullet_baseline.markdown(baseline, ours, "mug_000")
+        print(table)
+        title, heading = "pybullet", "CPU env vs PyBullet (the original's engine and method)"
     else:
         title, heading, table = "cpu_backend", "CPU backend (C MuJoCo, thread pool)", _bench_cpu_backend(args)
     body = f"## {heading}\n\n" + provenance_lines(provenance(), command) + "\n" + table
