@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import json
 import os
-import tempfile
 from pathlib import Path
 
+from partinstruct_mjx.atomic import atomic_write
 from partinstruct_mjx.errors import AssetError
 
 CATALOG_FILE = "catalog.json"
@@ -27,11 +27,9 @@ def write_catalog(root: str | os.PathLike, entries: list[dict]) -> None:
     """Write the catalog atomically, sorted by category and id."""
     path = Path(root) / CATALOG_FILE
     entries = sorted(entries, key=lambda e: (e["category"], e["id"]))
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with tempfile.NamedTemporaryFile("w", dir=path.parent, suffix=".tmp", delete=False) as tmp:
-        json.dump({"objects": entries}, tmp, indent=1)
-        tmp.write("\n")
-    os.replace(tmp.name, path)
+    with atomic_write(path) as file:
+        json.dump({"objects": entries}, file, indent=1)
+        file.write("\n")
 
 
 def update_catalog(root: str | os.PathLike, new_entries: list[dict]) -> None:

@@ -9,13 +9,13 @@ import dataclasses
 import hashlib
 import json
 import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import trimesh
 
+from partinstruct_mjx.atomic import atomic_write
 from partinstruct_mjx.errors import AssetError
 
 CONVERTER_VERSION = "3"
@@ -148,10 +148,8 @@ class HullCache:
             return [(data[f"v{i}"], data[f"f{i}"]) for i in range(count)], float(data["seconds"])
 
     def put(self, key: str, hulls: list[Hull], seconds: float) -> None:
-        self.directory.mkdir(parents=True, exist_ok=True)
         arrays = {"count": np.array(len(hulls)), "seconds": np.array(seconds)}
         for i, (v, f) in enumerate(hulls):
             arrays[f"v{i}"], arrays[f"f{i}"] = v, f
-        with tempfile.NamedTemporaryFile(dir=self.directory, suffix=".tmp", delete=False) as tmp:
-            np.savez(tmp, **arrays)
-        os.replace(tmp.name, self.directory / f"{key}.npz")
+        with atomic_write(self.directory / f"{key}.npz", "wb") as file:
+            np.savez(file, **arrays)

@@ -2,10 +2,10 @@
 
 from __future__ import annotations
 
-import os
 import re
-import tempfile
 from pathlib import Path
+
+from partinstruct_mjx.atomic import atomic_write
 
 HEADER = (
     "# Benchmarks\n\n"
@@ -22,10 +22,8 @@ def write_section(path: Path, name: str, body: str) -> None:
     block = f"{begin}\n{body.rstrip()}\n{end}"
     pattern = re.compile(re.escape(begin) + r".*?" + re.escape(end), re.DOTALL)
     text = pattern.sub(lambda _: block, text) if pattern.search(text) else text.rstrip() + "\n\n" + block + "\n"
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with tempfile.NamedTemporaryFile("w", dir=path.parent, delete=False, suffix=".tmp") as tmp:
-        tmp.write(text)
-    os.replace(tmp.name, path)
+    with atomic_write(path) as file:
+        file.write(text)
 
 
 def provenance_lines(info: dict, command: str) -> str:

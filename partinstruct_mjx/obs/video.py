@@ -8,7 +8,6 @@ accepts: a semantic label, a spatial word, '' for the whole object; NO_PART for 
 from __future__ import annotations
 
 import os
-import tempfile
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -16,6 +15,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from partinstruct_mjx.atomic import atomic_path, atomic_write
 from partinstruct_mjx.errors import AssetError, PartInstructError, SceneError
 from partinstruct_mjx.obs.cameras import AGENTVIEW, IMAGE_SIZE, WRIST
 from partinstruct_mjx.obs.images import ImageRenderer
@@ -50,15 +50,8 @@ def save_trajectory(path: str | os.PathLike, scene: Scene, qpos: np.ndarray, par
         if len(part) != len(qpos):
             raise SceneError(f"{path}: {len(part)} part names for {len(qpos)} steps")
         arrays["part"] = np.array(part, dtype=str)
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with tempfile.NamedTemporaryFile(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp", delete=False) as tmp:
-        try:
-            np.savez_compressed(tmp, **arrays)
-        except BaseException:
-            os.unlink(tmp.name)
-            raise
-    os.replace(tmp.name, path)
+    with atomic_write(path, "wb") as file:
+        np.savez_compressed(file, **arrays)
 
 
 def load_trajectory(path: str | os.PathLike) -> Trajectory:
@@ -110,14 +103,10 @@ def render_video(trajectory: Trajectory | str | os.PathLike, out_mp4: str | os.P
     if not isinstance(trajectory, Trajectory):
         trajectory = load_trajectory(trajectory)
     scene = _scene(trajectory)
-    out_mp4 = Path(out_mp4)
-    out_mp4.parent.mkdir(parents=True, exist_ok=True)
-    tmp = tempfile.NamedTemporaryFile(dir=out_mp4.parent, prefix=f".{out_mp4.stem}.", suffix=".mp4", delete=False)
-    tmp.close()
-    try:
+    with atomic_path(out_mp4) as temporary:
         # ffmpeg starts before the renderer initialises JAX, which warns about any later fork.
-        writer = write_frames(tmp.name, (IMAGE_SIZE * (2 if wrist else 1), IMAGE_SIZE), fps=fps, codec="libx264",
-                              pix_fmt_out="yuv420p", macro_block_size=1, ffmpeg_log_level="error")
+        writer = write_frames(str(temporary), (IMAGE_SIZE * (2 if wrist else 1), IMAGE_SIZE), fps=fps,
+                              codec="libx264", pix_fmt_out="yuv420p", macro_block_size=1, ffmpeg_log_level="error")
         try:
             writer.send(None)
             with ImageRenderer(scene) as renderer:
@@ -128,10 +117,6 @@ def render_video(trajectory: Trajectory | str | os.PathLike, out_mp4: str | os.P
                     writer.send(np.ascontiguousarray(np.concatenate(views, axis=1)))
         finally:
             writer.close()
-        os.replace(tmp.name, out_mp4)
-    except BaseException:
-        os.unlink(tmp.name)
-        raise
     return len(trajectory.qpos)
 
 

@@ -13,7 +13,6 @@ from __future__ import annotations
 import json
 import math
 import os
-import tempfile
 import zlib
 from collections import Counter
 from dataclasses import dataclass
@@ -21,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from partinstruct_mjx.atomic import atomic_write
 from partinstruct_mjx.assets.partnet import category_slug
 from partinstruct_mjx.errors import TaskError
 from partinstruct_mjx.tasks import slot_rules
@@ -75,17 +75,9 @@ def write_metadata(episodes, path: str | os.PathLike) -> None:
     for ep in sorted(episodes, key=lambda e: (e.obj_class, _split_rank(e.split), e.task_type, e.ep_id)):
         tree.setdefault(ep.obj_class, {}).setdefault(ep.split, {}).setdefault(str(ep.task_type), []).append(
             _record(ep))
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with tempfile.NamedTemporaryFile("w", dir=path.parent, prefix=f".{path.name}.", suffix=".tmp",
-                                     delete=False) as tmp:
-        try:
-            json.dump(tree, tmp, indent=1)
-            tmp.write("\n")
-        except BaseException:
-            os.unlink(tmp.name)
-            raise
-    os.replace(tmp.name, path)
+    with atomic_write(path) as file:
+        json.dump(tree, file, indent=1)
+        file.write("\n")
 
 
 def _split_rank(split: str) -> tuple[int, str]:
