@@ -15,7 +15,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from partinstruct_mjx.bench.timing import measure_throughput
+from partinstruct_mjx.bench.timing import Throughput, measure_throughput
 from partinstruct_mjx.control import jax_ik
 from partinstruct_mjx.control.mink_ik import MinkIK
 from partinstruct_mjx.control.scripted_pick import top_down_quat
@@ -45,12 +45,8 @@ class Targets:
 @dataclass(frozen=True)
 class JaxResult:
     batch_size: int
-    compile_s: float
-    """First call (trace, compile, one run) minus the median run."""
-    solves_per_s: float
-    """Median over repeats."""
-    spread: tuple[float, float]
-    """Slowest and fastest repeat, solves/s."""
+    timing: Throughput
+    """Solves per second."""
 
 
 @dataclass(frozen=True)
@@ -116,7 +112,7 @@ def measure_jax(kin: jax_ik.ArmKinematics, targets: Targets, batch_size: int, co
     batch = targets.tiled(batch_size)
     args = [jax.device_put(jnp.asarray(a)) for a in (batch.seeds, batch.pos, batch.quat)]
     timing = measure_throughput(lambda: jax_ik.solve_ik(kin, *args, config)[0], batch_size, repeats, min_solves)
-    return JaxResult(batch_size, timing.compile_s, timing.per_s, timing.spread)
+    return JaxResult(batch_size, timing)
 
 
 def reached(kin: jax_ik.ArmKinematics, targets: Targets, config: jax_ik.IKConfig) -> np.ndarray:
@@ -158,7 +154,7 @@ def markdown(results: IKBenchResults) -> str:
     """Two tables: JAX IK speed per batch size, and reached targets / mink speed per target kind."""
     cfg = results.config
     speed = "\n".join(
-        f"| {r.batch_size:,} | {r.solves_per_s:,.0f} | {r.spread[0]:,.0f} - {r.spread[1]:,.0f} | {r.compile_s:.2f} |"
+        f"| {r.batch_size:,} | {r.timing.cells()} |"
         for r in results.speed)
     accuracy = "\n".join(
         f"| {r.kind} | {r.jax_solved:.1%} of {r.count:,} | {r.mink_solved:.1%} of {r.mink_count:,} | "

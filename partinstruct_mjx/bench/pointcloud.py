@@ -13,7 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from partinstruct_mjx.bench.timing import measure_throughput
+from partinstruct_mjx.bench.timing import Throughput, measure_throughput
 from partinstruct_mjx.obs import point_renderer
 from partinstruct_mjx.obs.cameras import AGENTVIEW, Camera, scene_camera
 from partinstruct_mjx.sim.mujoco_backend import MujocoBackend
@@ -26,12 +26,8 @@ from partinstruct_mjx.tasks.part_geometry import PartGeometry, load_part_geometr
 class JaxResult:
     sampler: str
     batch_size: int
-    compile_s: float
-    """First call (trace, compile, one run) minus the median call; a cache load where JAX's persistent cache is on."""
-    clouds_per_s: float
-    """Median over repeats."""
-    spread: tuple[float, float]
-    """Slowest and fastest repeat, clouds/s."""
+    timing: Throughput
+    """Clouds per second."""
 
 
 @dataclass(frozen=True)
@@ -84,7 +80,7 @@ def _measure_jax(surface: point_renderer.SurfacePoints, camera: Camera, state: S
 
     timing = measure_throughput(lambda: point_renderer.render_batch(surface, camera, *args, sampler=sampler).points,
                                 batch_size, repeats, min_clouds)
-    return JaxResult(sampler, batch_size, timing.compile_s, timing.per_s, timing.spread)
+    return JaxResult(sampler, batch_size, timing)
 
 
 def _measure_gl(scene: Scene, geometry: PartGeometry, state_row: SceneState,
@@ -113,8 +109,7 @@ def _measure_gl(scene: Scene, geometry: PartGeometry, state_row: SceneState,
 def markdown(results: PointCloudBenchResults) -> str:
     """A table of JAX clouds/s per sampler and batch size, and a line for the OpenGL path."""
     rows = "\n".join(
-        f"| {r.sampler} | {r.batch_size:,} | {r.clouds_per_s:,.0f} | {r.spread[0]:,.0f} - {r.spread[1]:,.0f} | "
-        f"{r.compile_s:.2f} |" for r in results.speed)
+        f"| {r.sampler} | {r.batch_size:,} | {r.timing.cells()} |" for r in results.speed)
     if results.gl is None:
         gl = f"OpenGL path not measured ({results.gl_error}).\n"
     else:

@@ -20,6 +20,10 @@ class Throughput:
     spread: tuple[float, float]
     """Slowest and fastest repeat, items per second."""
 
+    def cells(self) -> str:
+        """Markdown cells: median, range over repeats, compile seconds."""
+        return f"{self.per_s:,.0f} | {self.spread[0]:,.0f} - {self.spread[1]:,.0f} | {self.compile_s:.2f}"
+
 
 def measure_throughput(call: Callable[[], jax.Array], batch_size: int, repeats: int, min_items: int) -> Throughput:
     """Time `call` (one batch of `batch_size` items) with JAX's caches cleared first; each repeat runs enough calls
