@@ -7,7 +7,6 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
 
 DEFAULT_BENCH_OUTPUT = Path("docs/benchmarks.md")
 
@@ -134,22 +133,13 @@ def _convert(args) -> int:
     return 1 if any(r.status == "failed" for r in records) else 0
 
 
-def _random_placements(batch: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
-    """Object x/y in the original's workspace (spec 1.4) and a random yaw, as (w, x, y, z) quaternions."""
-    rng = np.random.default_rng(seed)
-    xy = np.column_stack([rng.uniform(-0.05, 0.08, batch), rng.uniform(-0.085, 0.2, batch)])
-    yaw = rng.uniform(-np.pi, np.pi, batch)
-    quat = np.column_stack([np.cos(yaw / 2), np.zeros(batch), np.zeros(batch), np.sin(yaw / 2)])
-    return xy, quat
-
-
 def _simulate(args) -> int:
     from partinstruct_mjx.control.scripted_pick import run_pick
     from partinstruct_mjx.sim.mujoco_backend import MujocoBackend
-    from partinstruct_mjx.sim.scene import SceneConfig, build_scene
+    from partinstruct_mjx.sim.scene import SceneConfig, build_scene, random_placements
 
     scene = build_scene(SceneConfig(object_xml=args.object))
-    xy, quat = _random_placements(args.batch, args.seed)
+    xy, quat = random_placements(args.batch, args.seed)
     start = time.perf_counter()
     with MujocoBackend(scene, args.batch, num_threads=args.threads) as backend:
         state = backend.reset(xy, quat)

@@ -18,7 +18,7 @@ import numpy as np
 from flax import struct
 
 from partinstruct_mjx.control import jax_ik
-from partinstruct_mjx.control.rotations import euler_xyz_to_quat
+from partinstruct_mjx.control.rotations import euler_xyz_to_quat, quat_to_euler_xyz
 from partinstruct_mjx.errors import SceneError, TaskError
 from partinstruct_mjx.sim import panda
 from partinstruct_mjx.sim.scene import SceneConfig, build_scene
@@ -205,6 +205,13 @@ class PartInstructEnv:
         metrics |= {f"goal_{g}": task.goals_met[:, g] for g in range(progress.MAX_GOALS)}
         return State(data=data, task=task, obs=observe(data, task), reward=task.success.astype(jnp.float32),
                      done=done, metrics=metrics, info=info)
+
+
+def hold_action(tcp_pose, finger: float = panda.FINGER_OPEN) -> np.ndarray:
+    """(B, 7) Euler actions that keep the TCP at an observed `tcp_pose` (B, 7) [qx, qy, qz, qw, x, y, z]."""
+    pose = np.asarray(tcp_pose)
+    euler = np.asarray(quat_to_euler_xyz(jnp.asarray(np.roll(pose[:, :4], 1, axis=1))))
+    return np.concatenate([pose[:, 4:], euler, np.full((len(pose), 1), finger)], axis=1)
 
 
 @jax.jit

@@ -12,8 +12,7 @@ brax_base = pytest.importorskip("brax.envs.base")
 
 from partinstruct_mjx import paths  # noqa: E402
 from partinstruct_mjx.brax_env import OBSERVATION_SIZE, BraxPartInstructEnv  # noqa: E402
-from partinstruct_mjx.control.rotations import quat_to_euler_xyz  # noqa: E402
-from partinstruct_mjx.env import EnvConfig, PartInstructEnv  # noqa: E402
+from partinstruct_mjx.env import EnvConfig, PartInstructEnv, hold_action  # noqa: E402
 from partinstruct_mjx.errors import SceneError, TaskError  # noqa: E402
 from partinstruct_mjx.tasks import progress  # noqa: E402
 from partinstruct_mjx.tasks.episodes import Episode  # noqa: E402
@@ -103,8 +102,7 @@ def test_bad_input_raises_clear_errors(env):
 
 def _hold(tcp_pose: np.ndarray) -> np.ndarray:
     """The Euler actions that keep the TCP where it is, fingers open."""
-    euler = np.asarray(quat_to_euler_xyz(jnp.asarray(np.roll(tcp_pose[:, :4], 1, axis=1))))
-    return np.concatenate([tcp_pose[:, 4:], euler, np.full((len(tcp_pose), 1), 0.04)], axis=1)
+    return hold_action(tcp_pose)
 
 
 def _rows(tree, row):

@@ -6,8 +6,7 @@ import numpy as np
 import pytest
 
 from partinstruct_mjx import paths
-from partinstruct_mjx.control.rotations import quat_to_euler_xyz
-from partinstruct_mjx.env import EnvConfig, PartInstructEnv
+from partinstruct_mjx.env import EnvConfig, PartInstructEnv, hold_action
 from partinstruct_mjx.errors import TaskError
 from partinstruct_mjx.sim.scene import SceneConfig
 from partinstruct_mjx.tasks.episodes import Episode
@@ -32,10 +31,8 @@ def env():
 
 
 def _hold(state, finger=0.04):
-    """The action that keeps the TCP where it is: position, Euler angles from tcp_pose, finger opening."""
-    pose = np.asarray(state.obs["tcp_pose"])
-    euler = np.asarray(quat_to_euler_xyz(jnp.asarray(np.roll(pose[:, :4], 1, axis=1))))
-    return np.concatenate([pose[:, 4:], euler, np.full((len(pose), 1), finger)], axis=1)
+    """The action that keeps the TCP where it is."""
+    return hold_action(state.obs["tcp_pose"], finger)
 
 
 def test_reset_observations_in_the_original_layout(env):

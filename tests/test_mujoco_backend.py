@@ -7,15 +7,11 @@ from partinstruct_mjx.bench.cpu_backend import moving_controls
 from partinstruct_mjx.errors import SceneError
 from partinstruct_mjx.sim import panda
 from partinstruct_mjx.sim.mujoco_backend import MujocoBackend
-from partinstruct_mjx.sim.scene import TABLE_HEIGHT
+from partinstruct_mjx.sim.scene import TABLE_HEIGHT, random_placements
 
 
 def _placements(batch, seed=0):
-    rng = np.random.default_rng(seed)
-    xy = np.column_stack([rng.uniform(-0.05, 0.08, batch), rng.uniform(-0.085, 0.2, batch)])
-    yaw = rng.uniform(-np.pi, np.pi, batch)
-    quat = np.column_stack([np.cos(yaw / 2), np.zeros(batch), np.zeros(batch), np.sin(yaw / 2)])
-    return xy, quat
+    return random_placements(batch, seed)
 
 
 def test_robot_holds_its_home_pose(scene):

@@ -290,10 +290,8 @@ def measure_partinstruct_env(object_xml: str | Path, batch_size: int, steps: int
     """Env steps/s (B x steps / s) of our `PartInstructEnv` on the C backend holding the TCP pose (IK, physics and
     all predicates every step), type-3 episode on the mug's handle; reset time is not counted."""
     import jax
-    import jax.numpy as jnp
 
-    from partinstruct_mjx.control.rotations import quat_to_euler_xyz
-    from partinstruct_mjx.env import EnvConfig, PartInstructEnv
+    from partinstruct_mjx.env import EnvConfig, PartInstructEnv, hold_action
     from partinstruct_mjx.tasks.episodes import Episode
     from partinstruct_mjx.tasks.task_types import task_type
 
@@ -305,9 +303,7 @@ def measure_partinstruct_env(object_xml: str | Path, batch_size: int, steps: int
     with PartInstructEnv(object_xml, batch_size, EnvConfig(num_threads=num_threads)) as env:
         for r in range(repeats):
             state = env.reset(jax.random.PRNGKey(r), [episode] * batch_size)
-            pose = np.asarray(state.obs["tcp_pose"])
-            euler = np.asarray(quat_to_euler_xyz(jnp.asarray(np.roll(pose[:, :4], 1, axis=1))))
-            action = np.concatenate([pose[:, 4:], euler, np.full((batch_size, 1), 0.04)], axis=1)
+            action = hold_action(state.obs["tcp_pose"])
             state = env.step(state, action)  # warm-up (compilation) outside the timing
             jax.block_until_ready(state.obs["tcp_pose"])
             start = time.perf_counter()

@@ -20,6 +20,10 @@ from partinstruct_mjx.sim import panda
 TABLE_HEIGHT = 0.06
 """Height of the table top (spec 1.2: 'a horizontal surface at roughly z = 0.06')."""
 
+OBJECT_X_RANGE = (-0.05, 0.08)
+OBJECT_Y_RANGE = (-0.085, 0.2)
+"""Where objects are placed on the table (the original's workspace helper, spec 1.4)."""
+
 OBJECT_PREFIX = "object/"
 OBJECT_ROOT_JOINT = OBJECT_PREFIX + "root"
 
@@ -218,3 +222,11 @@ def _has_ancestor(model: mujoco.MjModel, body: int, ancestor: int) -> bool:
             return True
         body = model.body_parentid[body]
     return False
+
+
+def random_placements(batch: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """(B, 2) object x/y in the workspace and (B, 4) random-yaw orientations (w, x, y, z), from `seed`."""
+    rng = np.random.default_rng(seed)
+    xy = np.column_stack([rng.uniform(*OBJECT_X_RANGE, batch), rng.uniform(*OBJECT_Y_RANGE, batch)])
+    yaw = rng.uniform(-np.pi, np.pi, batch)
+    return xy, np.column_stack([np.cos(yaw / 2), np.zeros(batch), np.zeros(batch), np.sin(yaw / 2)])

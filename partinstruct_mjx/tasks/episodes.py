@@ -23,6 +23,7 @@ import numpy as np
 from partinstruct_mjx.atomic import atomic_write
 from partinstruct_mjx.assets.partnet import category_slug
 from partinstruct_mjx.errors import TaskError
+from partinstruct_mjx.sim.scene import OBJECT_X_RANGE, OBJECT_Y_RANGE
 from partinstruct_mjx.tasks import slot_rules
 from partinstruct_mjx.tasks.instructions import skill_instruction, task_instruction
 from partinstruct_mjx.tasks.skills import SkillStep
@@ -34,7 +35,6 @@ SEEN_TYPES = tuple(range(1, 11))
 UNSEEN_TYPES = tuple(range(11, 17))
 SPLIT_TYPES = {split: UNSEEN_TYPES if split == "test4" else SEEN_TYPES for split in SPLITS}
 
-X_RANGE, Y_RANGE = (-0.05, 0.08), (-0.085, 0.2)
 """The original's workspace for object positions (spec 1.4)."""
 
 MAX_ATTEMPTS = 200
@@ -265,7 +265,7 @@ def _draw(objects: list[dict], assets_root: Path, split: str, type_id: int, held
     category = objects[0]["category"]
     for _ in range(MAX_ATTEMPTS):
         entry = objects[rng.integers(len(objects))]
-        x, y, yaw = rng.uniform(*X_RANGE), rng.uniform(*Y_RANGE), rng.uniform(-math.pi, math.pi)
+        x, y, yaw = rng.uniform(*OBJECT_X_RANGE), rng.uniform(*OBJECT_Y_RANGE), rng.uniform(-math.pi, math.pi)
         views = slot_rules.part_views(slot_rules.load_object_geometry(str(assets_root / entry["path"])), yaw)
         options = [(parts, dirs) for parts, dirs in slot_rules.feasible_assignments(type_id, category, views, (x, y))
                    if _split_admits(split, slot_rules.combination(type_id, parts) in held_out)]
