@@ -15,3 +15,7 @@ class SceneError(PartInstructError):
 
 class TaskError(PartInstructError):
     """A task, skill, part, direction or episode is unknown, malformed or impossible."""
+
+
+class DataError(PartInstructError):
+    """Demonstration data is malformed, duplicated, or inconsistent with the run directory it is written to."""
