@@ -30,11 +30,13 @@ _SPATIAL_VARIANCES = np.array([MIDDLE_VARIANCE if w == "middle" else SPATIAL_VAR
 class PartGeometry:
     """Part clouds of one object (shared by every environment of a batch).
 
-    points: (K, M, 3) body-frame points per part row; bodies: (K, M) model body ids; valid: (K, M) padding mask.
+    points: (K, M, 3) body-frame points per part row; normals: (K, M, 3) their outward unit normals (body frame);
+    bodies: (K, M) model body ids; valid: (K, M) padding mask.
     geom_part: (ngeom,) semantic part row of each geom, -1 for geoms that are not the object's.
     """
 
     points: jnp.ndarray
+    normals: jnp.ndarray
     bodies: jnp.ndarray
     valid: jnp.ndarray
     geom_part: jnp.ndarray
@@ -72,12 +74,15 @@ def load_part_geometry(scene: Scene, parts_npz: str | Path | None = None) -> Par
     semantic = data["points"][:, :m]
     rows = len(names) + len(SPATIAL_PARTS) + 1
     points = np.zeros((rows, m, 3), np.float32)
+    normals = np.zeros((rows, m, 3), np.float32)
     bodies = np.zeros((rows, m), np.int32)
     valid = np.zeros((rows, m), bool)
     points[: len(names), : semantic.shape[1]] = semantic
+    normals[: len(names), : semantic.shape[1]] = data["normals"][:, :m]
     bodies[: len(names), : semantic.shape[1]] = body_ids[data["point_body"][:, :m]]
     valid[: len(names), : semantic.shape[1]] = True
     points[len(names):] = object_points
+    normals[len(names):] = data["object_normals"]
     bodies[len(names):] = body_ids[data["object_point_body"]]
     valid[len(names):] = True
     geom_part = np.full(model.ngeom, -1, np.int32)
@@ -85,7 +90,7 @@ def load_part_geometry(scene: Scene, parts_npz: str | Path | None = None) -> Par
         if scene.geom_part[g] >= 0:
             label = scene.part_names[scene.geom_part[g]]
             geom_part[g] = names.index(label) if label in names else len(names) + len(SPATIAL_PARTS)
-    return PartGeometry(jnp.asarray(points), jnp.asarray(bodies), jnp.asarray(valid), jnp.asarray(geom_part),
+    return PartGeometry(jnp.asarray(points), jnp.asarray(normals), jnp.asarray(bodies), jnp.asarray(valid), jnp.asarray(geom_part),
                         names=tuple(names) + SPATIAL_PARTS + ("",), num_semantic=len(names))
 
 
