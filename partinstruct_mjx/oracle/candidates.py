@@ -1,0 +1,248 @@
+"""Part-aware grasp and touch poses from part point clouds, pure JAX for one environment (vmap for a batch).
+
+Grasps are antipodal-style candidates: the gripper's closing region (between the open pads) must hold object points,
+the open pads and the hand must be free of object points along the whole approach, and the fingers must stay above
+the table. Candidates are ranked by how much of what the pads close on is the target part, how well centred the
+grasp is on the part, and how top-down the approach is; the arm's reach is checked with the batched IK afterwards.
+Touch poses follow spec 8.5: the fingertip comes from the free side that best matches the part's offset (or from
+the side opposite a following push).
+"""
+
+from __future__ import annotations
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from partinstruct_mjx.control.rotations import matrix_to_quat
+from partinstruct_mjx.sim.scene import TABLE_HEIGHT
+
+PAD_CENTRE = 0.0394
+"""Distance from the TCP along its z axis to the middle of the finger pads (hand frame z 0.0944 vs 0.055)."""
+PAD_HALF_WIDTH = 0.0125
+PAD_HALF_LENGTH = 0.017
+PAD_OUTER = 0.058
+"""Outer face of an open pad (0.04 opening + 0.014 pad + margin) from the grasp centre, across the fingers."""
+MAX_GRASP_WIDTH = 0.074
+"""Widest object section the 8 cm opening closes on (3 mm clearance on both sides)."""
+PAD_INNER = 0.038
+"""Inner face of an open pad (0.04) from the grasp centre, less a margin: no object point may lie in the pads."""
+HAND_BACK = 0.028
+"""The hand capsule starts this far behind the pads' middle (along the approach, plus margin)."""
+HAND_HALF_WIDTH = 0.032
+HAND_HALF_LENGTH = 0.12
+TABLE_CLEARANCE = 0.004
+GRASP_DEPTH = 0.012
+"""How far past the seed surface point the pads' middle goes along the approach."""
+PREGRASP_DISTANCE = 0.08
+LINE_RADIUS = 0.008
+CONTACT_BAND = 0.004
+"""Points this close to either end of the closed-on section are where a pad lands."""
+MIN_ANTIPODAL = 0.5
+"""Smallest mean cosine between the landing surfaces' normals and the pads' pushing directions."""
+OFF_CENTRE_WEIGHT = 10.0
+"""Score lost per metre between the grasp and the object's middle (horizontally)."""
+
+NUM_AZIMUTHS = 8
+NUM_SEEDS = 24
+SEED_INSET = 0.008
+"""The grasp line starts this far inside the surface under the seed (the recentring then finds the section)."""
+MIN_APPROACH_COMPONENT = 0.5
+"""An approach direction is used only if this much of it is left across the seed's normal."""
+
+
+def _approach_directions() -> np.ndarray:
+    """Top-down, horizontal and 45-degree-down approach directions (unit vectors the gripper moves along)."""
+    out = [(0.0, 0.0, -1.0)]
+    for k in range(NUM_AZIMUTHS):
+        c, s = math.cos(2 * math.pi * k / NUM_AZIMUTHS), math.sin(2 * math.pi * k / NUM_AZIMUTHS)
+        out += [(c, s, 0.0), (c * math.sqrt(0.5), s * math.sqrt(0.5), -math.sqrt(0.5))]
+    return np.array(out)
+
+
+APPROACHES = _approach_directions().astype(np.float32)
+
+
+def tcp_quat(approach: jnp.ndarray, closing: jnp.ndarray) -> jnp.ndarray:
+    """TCP orientation (w, x, y, z) with z along the approach and y along the fingers' closing axis."""
+    x = jnp.cross(closing, approach)
+    return matrix_to_quat(jnp.stack([x, closing, approach], axis=-1))
+
+
+def grasp_candidates(object_points, object_normals, object_valid, part_points, part_normals, part_valid, key
+                     ) -> dict[str, jnp.ndarray]:
+    """Scored grasps for one environment: centre (N, 3), approach (N, 3), closing (N, 3), score (N,), -inf invalid,
+    and checks (N, 7): something between the pads, narrow enough, pads free, hand free, above the table, the part
+    under a pad, antipodal (GRASP_CHECKS).
+
+    Antipodal sampling: a pad lands on a seed point of the part and closes along its normal; the approach is each
+    of APPROACHES made perpendicular to that normal. Points (M, 3) are world-frame with outward unit normals.
+    """
+    probabilities = part_valid / jnp.maximum(part_valid.sum(), 1)
+    picked = jax.random.choice(key, part_points.shape[0], (NUM_SEEDS,), p=probabilities)
+    seeds, normals = part_points[picked], part_normals[picked]
+    part_centre = (part_points * part_valid[:, None]).sum(0) / jnp.maximum(part_valid.sum(), 1)
+    object_centre = (object_points * object_valid[:, None]).sum(0) / jnp.maximum(object_valid.sum(), 1)
+    extent = jnp.linalg.norm(jnp.where(part_valid[:, None], part_points, part_centre).max(0)
+                             - jnp.where(part_valid[:, None], part_points, part_centre).min(0))
+
+    def one(seed, normal, approach, through):
+        approach = approach - (approach @ normal) * normal
+        length = jnp.linalg.norm(approach)
+        approach = approach / jnp.maximum(length, 1e-9)
+        # A thin wall is pinched just inside the seed; a solid section across its whole thickness along the normal.
+        inset = jnp.where(through, 0.5 * _thickness(seed, normal, object_points, object_valid), SEED_INSET)
+        start = _first_surface(seed - inset * normal, approach, object_points, object_valid)
+        centre, score, checks = _score(start + GRASP_DEPTH * approach, approach, normal, object_points,
+                                       object_normals, object_valid, part_points, part_valid, part_centre, extent,
+                                       object_centre)
+        return centre, approach, jnp.where(length > MIN_APPROACH_COMPONENT, score, -jnp.inf), checks
+
+    per_seed = 2 * APPROACHES.shape[0]
+    seed_index = jnp.repeat(jnp.arange(NUM_SEEDS), per_seed)
+    base = jnp.tile(jnp.asarray(np.concatenate([APPROACHES, APPROACHES])), (NUM_SEEDS, 1))
+    through = jnp.tile(jnp.arange(per_seed) >= APPROACHES.shape[0], NUM_SEEDS)
+    centre, approach, score, checks = jax.vmap(one)(seeds[seed_index], normals[seed_index], base, through)
+    return {"centre": centre, "approach": approach, "closing": normals[seed_index], "score": score,
+            "checks": checks}
+
+
+GRASP_CHECKS = ("between", "width", "pads_free", "hand_free", "above_table", "on_part", "antipodal")
+
+
+def _thickness(seed, normal, object_points, object_valid):
+    """How deep the object goes behind `seed` along -normal (within the gripper's reach), metres."""
+    d = object_points - seed
+    s = -(d @ normal)
+    off_line = jnp.linalg.norm(d + s[:, None] * normal, axis=-1)
+    hit = object_valid & (off_line < LINE_RADIUS) & (s > 0) & (s < MAX_GRASP_WIDTH)
+    return jnp.where(hit, s, 0.0).max()
+
+
+def _first_surface(seed, approach, object_points, object_valid):
+    """Where the line through `seed` along the approach first meets the object (the fingers arrive there first)."""
+    d = object_points - seed
+    t = d @ approach
+    off_line = jnp.linalg.norm(d - t[:, None] * approach, axis=-1)
+    hit = object_valid & (off_line < LINE_RADIUS)
+    return seed + jnp.where(hit.any(), jnp.where(hit, t, jnp.inf).min(), 0.0) * approach
+
+
+def _score(centre, approach, closing, object_points, object_normals, object_valid, part_points, part_valid,
+           part_centre, extent, object_centre):
+    across = jnp.cross(closing, approach)
+
+    def local(points):
+        d = points - centre
+        return d @ across, d @ closing, d @ approach
+
+    u, v, t = local(object_points)
+    between = object_valid & (jnp.abs(u) < PAD_HALF_WIDTH) & (jnp.abs(t) < PAD_HALF_LENGTH) & (jnp.abs(v) < 0.04)
+    v_min = jnp.where(between, v, jnp.inf).min()
+    v_max = jnp.where(between, v, -jnp.inf).max()
+    shift = jnp.where(between.any(), 0.5 * (v_min + v_max), 0.0)
+    centre = centre + shift * closing
+    v = v - shift
+    width = v_max - v_min
+    # Antipodal: where each pad lands the surface must face that pad (normals along the closing axis).
+    along = object_normals @ closing
+    side_max = between & (v > v_max - CONTACT_BAND)
+    side_min = between & (v < v_min + CONTACT_BAND)
+    facing_max = (along * side_max).sum() / jnp.maximum(side_max.sum(), 1)
+    facing_min = -(along * side_min).sum() / jnp.maximum(side_min.sum(), 1)
+    antipodal = jnp.minimum(facing_max, facing_min)
+    pads = (object_valid & (jnp.abs(u) < PAD_HALF_WIDTH + 0.003) & (t < PAD_HALF_LENGTH + 0.01)
+            & (t > -PREGRASP_DISTANCE - PAD_HALF_LENGTH - 0.01)
+            & (jnp.abs(v) > PAD_INNER) & (jnp.abs(v) < PAD_OUTER))
+    hand = (object_valid & (t < -HAND_BACK) & (t > -HAND_BACK - PREGRASP_DISTANCE - 0.06) & (jnp.abs(u) < HAND_HALF_WIDTH) & (jnp.abs(v) < HAND_HALF_LENGTH))
+    corners = jnp.array([[su * PAD_HALF_WIDTH, sv * PAD_OUTER, PAD_HALF_LENGTH + 0.007]
+                         for su in (-1, 1) for sv in (-1, 1)]
+                        + [[su * HAND_HALF_WIDTH, sv * 0.085, -HAND_BACK - 0.028] for su in (-1, 1) for sv in (-1, 1)])
+    corner_z = centre[2] + corners @ jnp.stack([across[2], closing[2], approach[2]])
+    above_table = corner_z.min() > TABLE_HEIGHT + TABLE_CLEARANCE
+
+    pu, pv, pt = local(part_points)
+    pv = pv - shift
+    on_part = part_valid & (jnp.abs(pu) < PAD_HALF_WIDTH) & (jnp.abs(pt) < PAD_HALF_LENGTH) & (jnp.abs(pv) < 0.04)
+    near_pad = on_part & (jnp.abs(pv) > 0.5 * width - 0.006)
+    n_between = between.sum()
+    target_share = jnp.minimum(on_part.sum() / jnp.maximum(n_between, 1), 1.0)
+    checks = jnp.stack([n_between >= 4, width < MAX_GRASP_WIDTH, ~pads.any(), ~hand.any(), above_table,
+                        near_pad.sum() >= 2, antipodal > MIN_ANTIPODAL])
+    valid = checks.all()
+    # Grasps far from the object's middle let it pivot or squeeze out when lifted.
+    off_centre = jnp.linalg.norm((centre - object_centre)[:2])
+    score = (1.0 * target_share + 1.0 * antipodal + 0.4 * (-approach[2])
+             - 1.0 * jnp.linalg.norm(centre - part_centre) / jnp.maximum(extent, 0.02)
+             - OFF_CENTRE_WEIGHT * off_centre + 0.2 * jnp.minimum(n_between / 20.0, 1.0))
+    return centre, jnp.where(valid, score, -jnp.inf), checks
+
+
+TOUCH_SIDES = np.array([[0.0, 1.0, 0.0], [0.0, -1.0, 0.0], [-1.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]],
+                       np.float32)
+"""Sides the fingertip comes from (left, right, front, back, top; spec 8.5): the TCP's z axis points against them."""
+TOUCH_TILTS = (0.0, 0.8, 1.2)
+"""Radians the hand is tilted down from horizontal for a side touch: the far (front) side is out of the arm's reach
+with a level hand, and low points need the tilt to keep the hand off the table."""
+TOUCH_DEPTH = 0.004
+"""How far past the touch point the fingertip is aimed (the touch skill stops as soon as TOUCHING holds)."""
+FACE_BAND = 0.012
+MIN_TOUCH_HEIGHT = 0.02
+"""Lowest touch point above the table (m): the closed fingertips are about 2.5 cm wide."""
+LOW_TOUCH_HEIGHT = 0.10
+"""Touch points below this world z are not touched with a level hand (the hand would hit the table)."""
+
+
+def touch_candidates(object_points, object_valid, part_points, part_valid, push_side):
+    """Fingertip targets per side and tilt: point (N, 3), tcp z axis (N, 3), score (N,), -inf where not usable.
+
+    push_side (3,): the side a following push needs (zero when no push follows); it overrides the ranking.
+    """
+    part_centre = (part_points * part_valid[:, None]).sum(0) / jnp.maximum(part_valid.sum(), 1)
+    object_centre = (object_points * object_valid[:, None]).sum(0) / jnp.maximum(object_valid.sum(), 1)
+    lo = jnp.where(part_valid[:, None], part_points, jnp.inf).min(0)
+    hi = jnp.where(part_valid[:, None], part_points, -jnp.inf).max(0)
+
+    def one(side, tilt):
+        reach = jnp.where(part_valid, part_points @ side, -jnp.inf)
+        best = reach.max()
+        is_top = side[2] > 0.5
+        # Object points that could block this side at the part's level (height band) or over its footprint (top).
+        level = jnp.where(is_top, (object_points[:, 0] > lo[0] - 0.01) & (object_points[:, 0] < hi[0] + 0.01)
+                          & (object_points[:, 1] > lo[1] - 0.01) & (object_points[:, 1] < hi[1] + 0.01),
+                          (object_points[:, 2] > lo[2] - 0.01) & (object_points[:, 2] < hi[2] + 0.01))
+        blocking = jnp.where(object_valid & level, object_points @ side, -jnp.inf).max()
+        free = best >= blocking - 0.01
+        face = part_valid & (reach > best - FACE_BAND)
+        # A push tips tall objects over unless it presses low: pushes take the lowest face point the closed
+        # fingertips can reach above the table; other touches the face point nearest the part's centre.
+        pushing = (side @ push_side) > 0.5
+        reachable = part_points[:, 2] > TABLE_HEIGHT + MIN_TOUCH_HEIGHT
+        cost = jnp.where(pushing, part_points[:, 2], jnp.linalg.norm(part_points - part_centre, axis=-1))
+        cost = cost + jnp.where(face & (reachable | ~pushing), 0.0, jnp.inf)
+        point = part_points[jnp.argmin(cost)]
+        z_axis = jnp.where(is_top, -side, -jnp.cos(tilt) * side - jnp.sin(tilt) * jnp.array([0.0, 0.0, 1.0]))
+        above_table = (point[2] > TABLE_HEIGHT + MIN_TOUCH_HEIGHT) & ((point[2] > LOW_TOUCH_HEIGHT) | (tilt > 0))
+        # The top side has one pose; its tilted copies are dropped.
+        above_table = above_table & ~(is_top & (tilt > 0))
+        alignment = (part_centre - object_centre) @ side
+        # Before a push only the side opposite the push direction will do.
+        usable = free & above_table & (pushing | (jnp.linalg.norm(push_side) < 0.5))
+        return point, z_axis, jnp.where(usable, alignment - 0.01 * tilt, -jnp.inf)
+
+    sides = jnp.repeat(jnp.asarray(TOUCH_SIDES), len(TOUCH_TILTS), axis=0)
+    tilts = jnp.tile(jnp.asarray(TOUCH_TILTS), TOUCH_SIDES.shape[0])
+    return jax.vmap(one)(sides, tilts)
+
+
+def touch_quat(z_axis: jnp.ndarray) -> jnp.ndarray:
+    """TCP orientation for a touch: z along `z_axis`, x pointing as far down as possible (the spec's side-approach
+    frame) or along -x world for a top-down touch."""
+    down = jnp.array([0.0, 0.0, -1.0])
+    x = down - (down @ z_axis) * z_axis
+    x = jnp.where(jnp.linalg.norm(x) < 1e-3, jnp.array([-1.0, 0.0, 0.0]), x)
+    x = x / jnp.linalg.norm(x)
+    y = jnp.cross(z_axis, x)
+    return matrix_to_quat(jnp.stack([x, y, z_axis], axis=-1))

@@ -1,0 +1,98 @@
+"""Run the oracle on a batch of episodes in a PartInstructEnv and record what a demonstration needs.
+
+The env runs in task mode (the original generated its demos that way, spec 8.1); the oracle sequences the skills
+itself. A scene's episode ends at task success, at the env's step limit, when the oracle fails a skill, or when
+the oracle has executed the whole chain. Per step the recording keeps the action, the proprioception, the skill
+being executed and the compact state point clouds are rendered from later (body poses and the target-part mask).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from partinstruct_mjx.env import PartInstructEnv
+from partinstruct_mjx.obs import point_renderer
+from partinstruct_mjx.oracle import machine
+
+_plan = jax.jit(machine.plan)
+_act = jax.jit(machine.act)
+
+
+@dataclass
+class OracleRollout:
+    """What a batch of oracle episodes did. Arrays are (B, T, ...) over the longest episode; `length` cuts each."""
+
+    success: np.ndarray
+    length: np.ndarray
+    failed_skill: np.ndarray
+    """(B,) index of the chain skill that failed, -1 if none (a task that ran out of steps has -1 too)."""
+    actions: np.ndarray
+    skill_index: np.ndarray
+    obs: dict[str, np.ndarray]
+    body_pos: np.ndarray
+    body_quat: np.ndarray
+    target_mask: np.ndarray
+    initial_state: np.ndarray | None
+
+
+@jax.jit
+def _target_masks(oracle: machine.OracleState, surface, geometry):
+    index = jnp.clip(oracle.skill, 0, oracle.kind.shape[1] - 1)
+    part = jnp.take_along_axis(oracle.part, index[:, None], axis=1)[:, 0]
+    part = jnp.where(oracle.skill == machine.DONE, -1, part)
+    return jax.vmap(point_renderer.target_mask, in_axes=(None, None, 0, 0))(surface, geometry, oracle.masks, part)
+
+
+def run_oracle(env: PartInstructEnv, episodes: list, key: jax.Array, record: bool = True) -> OracleRollout:
+    """Reset `env` to `episodes`, let the oracle act until every scene's episode has ended, return the recording."""
+    if env.config.skill_mode:
+        raise ValueError("run_oracle needs an env in task mode (EnvConfig(skill_mode=False))")
+    reset_key, oracle_key = jax.random.split(key)
+    state = env.reset(reset_key, episodes)
+    initial_state = env.backend.get_physics_state() if hasattr(env.backend, "get_physics_state") else None
+    oracle = machine.init(machine.compile_chains(episodes, env.geometry), state.data, env.geometry, oracle_key)
+    surface = point_renderer.surface_points(env.scene, env.geometry) if record else None
+    batch = env.batch_size
+    limit = int(np.max(np.asarray(state.info["step_limit"])))
+    ended = np.zeros(batch, bool)
+    length = np.zeros(batch, np.int32)
+    frames: list[dict] = []
+    for _ in range(limit):
+        if bool(np.asarray(oracle.needs_plan).any()):
+            oracle = _plan(oracle, state.data, env.geometry, env.kinematics, state.info["joint_targets"])
+        skill = np.asarray(oracle.skill)
+        if record:
+            frames.append({"obs": {k: np.asarray(v) for k, v in state.obs.items() if k != "instruction_index"},
+                           "object_pose": _pose(state.data), "body_pos": np.asarray(state.data.body_pos, np.float32),
+                           "body_quat": np.asarray(state.data.body_quat, np.float32),
+                           "target_mask": np.asarray(_target_masks(oracle, surface, env.geometry)), "skill": skill})
+        oracle, action = _act(oracle, state.data, state.task.skills, env.geometry)
+        if record:
+            frames[-1]["action"] = np.asarray(action)
+        state = env.step(state, action)
+        length += ~ended
+        ended |= (np.asarray(state.done) | np.asarray(oracle.failed) | (np.asarray(oracle.skill) == machine.DONE))
+        if ended.all():
+            break
+    success = np.asarray(state.task.success)
+    return OracleRollout(
+        success=success, length=length, failed_skill=np.asarray(oracle.failed_skill),
+        actions=_stack(frames, "action"), skill_index=_stack(frames, "skill"),
+        obs={k: np.stack([f["obs"][k] for f in frames], 1) for k in (frames[0]["obs"] if frames else {})}
+        | ({"object_pose": _stack(frames, "object_pose")} if frames else {}),
+        body_pos=_stack(frames, "body_pos"), body_quat=_stack(frames, "body_quat"),
+        target_mask=_stack(frames, "target_mask"), initial_state=initial_state)
+
+
+def _stack(frames: list[dict], name: str) -> np.ndarray:
+    return np.stack([f[name] for f in frames], 1) if frames else np.zeros((0,))
+
+
+def _pose(data) -> np.ndarray:
+    """(B, 7) object pose in the original's layout [qx, qy, qz, qw, x, y, z]."""
+    quat = np.asarray(data.object_quat, np.float32)
+    return np.concatenate([quat[:, 1:], quat[:, :1], np.asarray(data.object_pos, np.float32)], axis=1)

@@ -1,0 +1,102 @@
+"""The oracle: grasp/touch candidates on real built-in objects, chain compilation, and a physics rollout."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from partinstruct_mjx.assets.catalog import load_catalog
+from partinstruct_mjx.control.rotations import quat_rotate
+from partinstruct_mjx.env import EnvConfig, PartInstructEnv
+from partinstruct_mjx.oracle import candidates, machine
+from partinstruct_mjx.oracle.rollout import run_oracle
+from partinstruct_mjx.paths import assets_root
+from partinstruct_mjx.tasks import predicates
+from partinstruct_mjx.tasks.episodes import generate_episodes
+from partinstruct_mjx.tasks.vocabulary import direction_vector
+
+
+@pytest.fixture(scope="module")
+def episodes():
+    root = assets_root()
+    return generate_episodes(load_catalog(root), root, 0, 1, ("train", "test4"))
+
+
+def _env(episode, batch=1):
+    root = assets_root()
+    xml = root / "objects" / episode.obj_class / episode.obj_id / "object.xml"
+    return PartInstructEnv(xml, batch, EnvConfig(skill_mode=False))
+
+
+def _clouds(env, state, part_name):
+    data = jax.tree_util.tree_map(lambda x: jnp.asarray(x)[0], state.data)
+    geo = env.geometry
+    world = predicates.world_clouds(data, geo)
+    part = geo.index(part_name)
+    masks = state.task.masks[0]
+    part_points, part_valid = predicates.part_cloud(data, geo, masks, part, world)
+    whole = geo.whole
+    normals = quat_rotate(data.body_quat[geo.bodies[whole]], geo.normals[whole])
+    part_normals = quat_rotate(data.body_quat[geo.bodies[part]], geo.normals[part])
+    return world[whole], normals, geo.valid[whole], part_points, part_normals, part_valid
+
+
+def test_grasp_candidates_close_on_the_part(episodes):
+    episode = next(e for e in episodes if e.obj_class == "bottle" and e.task_type == 1 and e.chain[0].part == "neck")
+    with _env(episode) as env:
+        state = env.reset(jax.random.PRNGKey(0), [episode])
+        points, normals, valid, part_points, part_normals, part_valid = _clouds(env, state, "neck")
+        grasps = candidates.grasp_candidates(points, normals, valid, part_points, part_normals, part_valid,
+                                             jax.random.PRNGKey(1))
+    score = np.asarray(grasps["score"])
+    good = np.isfinite(score)
+    assert good.sum() >= 5
+    checks = np.asarray(grasps["checks"])
+    assert checks[good].all()
+    # The best grasp's centre lies within a centimetre of the neck's points, closing across them.
+    best = int(np.argmax(score))
+    neck = np.asarray(part_points)[np.asarray(part_valid)]
+    assert np.linalg.norm(neck - np.asarray(grasps["centre"][best]), axis=1).min() < 0.01
+    assert abs(float(np.dot(grasps["approach"][best], grasps["closing"][best]))) < 1e-4
+
+
+def test_touch_before_a_push_comes_from_behind(episodes):
+    episode = next(e for e in episodes if e.task_type == 4)
+    push = episode.chain[1].direction
+    with _env(episode) as env:
+        state = env.reset(jax.random.PRNGKey(0), [episode])
+        points, _, valid, part_points, _, part_valid = _clouds(env, state, episode.chain[0].part)
+        side = -direction_vector(push).astype(np.float32)
+        _, axis, score = candidates.touch_candidates(points, valid, part_points, part_valid, jnp.asarray(side))
+    usable = np.isfinite(np.asarray(score))
+    assert usable.any()
+    # Every usable touch points the fingertip along the push (its horizontal component).
+    horizontal = np.asarray(axis)[usable] @ direction_vector(push)
+    assert (horizontal > 0.3).all()
+
+
+def test_compile_chains_marks_pushes_and_table_turns(episodes):
+    episode = next(e for e in episodes if e.task_type == 14)
+    with _env(episode) as env:
+        chains = machine.compile_chains([episode], env.geometry)
+    kinds = [machine.SKILL_KINDS[s.name] for s in episode.chain]
+    assert chains["kind"][0, : len(kinds)].tolist() == kinds
+    assert chains["num_skills"][0] == 5
+    np.testing.assert_allclose(chains["push_side"][0, 0], -direction_vector(episode.chain[1].direction))
+    assert chains["on_table_turn"][0].tolist()[:5] == [False, False, False, False, True]
+    assert chains["touching"][0, 1] and not chains["grasping"][0, 1]
+
+
+@pytest.mark.slow
+def test_oracle_touches_and_records(episodes):
+    batch = [e for e in episodes if e.task_type == 2 and e.obj_class == "mug"][:2]
+    batch = [e for e in episodes if e.task_type == 2 and e.obj_id == batch[0].obj_id] or batch[:1]
+    with _env(batch[0], len(batch)) as env:
+        rollout = run_oracle(env, batch, jax.random.PRNGKey(0))
+    assert rollout.success.all()
+    steps = rollout.actions.shape[1]
+    assert rollout.actions.shape == (len(batch), steps, 7)
+    assert rollout.target_mask.shape[:2] == (len(batch), steps)
+    assert (rollout.length <= steps).all() and (rollout.failed_skill == -1).all()
+    # The touch ends with closed fingers near the part.
+    assert (rollout.actions[np.arange(len(batch)), rollout.length - 1, 6] == 0.0).all()
