@@ -120,8 +120,9 @@ def compile_chains(episodes, geometry: PartGeometry) -> dict[str, np.ndarray]:
     return out
 
 
-def init(chains: dict, data, geometry: PartGeometry, key: jax.Array) -> OracleState:
-    """Machine state at reset: first skill, command = the current TCP pose, fingers as they are."""
+def init(chains: dict, data, geometry: PartGeometry, keys: jax.Array) -> OracleState:
+    """Machine state at reset: first skill, command = the current TCP pose, fingers as they are; keys (B, 2), one
+    per episode, so an episode's demo does not depend on its batch."""
     batch = chains["kind"].shape[0]
     masks = jax.vmap(lambda s: spatial_masks(predicates.object_points(s, geometry)))(data)
     fields = {k: jnp.asarray(v) for k, v in chains.items()}
@@ -133,7 +134,7 @@ def init(chains: dict, data, geometry: PartGeometry, key: jax.Array) -> OracleSt
         cmd_pos=jnp.asarray(data.tcp_pos, jnp.float32), cmd_quat=jnp.asarray(data.tcp_quat, jnp.float32),
         finger=jnp.asarray(data.finger_qpos[:, 0], jnp.float32),
         target_pos=jnp.asarray(data.tcp_pos, jnp.float32), target_quat=jnp.asarray(data.tcp_quat, jnp.float32),
-        approach=jnp.zeros((batch, 3), jnp.float32), key=jax.random.split(key, batch))
+        approach=jnp.zeros((batch, 3), jnp.float32), key=jnp.asarray(keys))
 
 
 # --- planning -----------------------------------------------------------------------------------------------

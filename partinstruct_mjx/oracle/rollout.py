@@ -48,17 +48,22 @@ def _target_masks(oracle: machine.OracleState, surface, geometry):
 
 
 def run_oracle(env: PartInstructEnv, episodes: list, key: jax.Array, record: bool = True) -> OracleRollout:
-    """Reset `env` to `episodes`, let the oracle act until every scene's episode has ended, return the recording."""
+    """Reset `env` to `episodes`, let the oracle act until every scene's episode has ended, return the recording.
+
+    `success` is each scene's task success at the step its episode ended. The oracle's random draws come from
+    `key` folded with each episode's seed, so a scene's demo does not depend on the batch it runs in.
+    """
     if env.config.skill_mode:
         raise ValueError("run_oracle needs an env in task mode (EnvConfig(skill_mode=False))")
-    reset_key, oracle_key = jax.random.split(key)
-    state = env.reset(reset_key, episodes)
+    state = env.reset(key, episodes)
     initial_state = env.backend.get_physics_state() if hasattr(env.backend, "get_physics_state") else None
-    oracle = machine.init(machine.compile_chains(episodes, env.geometry), state.data, env.geometry, oracle_key)
+    keys = jnp.stack([jax.random.fold_in(key, e.ep_id if e.seed is None else e.seed % 2**31) for e in episodes])
+    oracle = machine.init(machine.compile_chains(episodes, env.geometry), state.data, env.geometry, keys)
     surface = point_renderer.surface_points(env.scene, env.geometry) if record else None
     batch = env.batch_size
     limit = int(np.max(np.asarray(state.info["step_limit"])))
     ended = np.zeros(batch, bool)
+    success = np.zeros(batch, bool)
     length = np.zeros(batch, np.int32)
     frames: list[dict] = []
     for _ in range(limit):
@@ -75,10 +80,11 @@ def run_oracle(env: PartInstructEnv, episodes: list, key: jax.Array, record: boo
             frames[-1]["action"] = np.asarray(action)
         state = env.step(state, action)
         length += ~ended
-        ended |= (np.asarray(state.done) | np.asarray(oracle.failed) | (np.asarray(oracle.skill) == machine.DONE))
+        now = np.asarray(state.done) | np.asarray(oracle.failed) | (np.asarray(oracle.skill) == machine.DONE)
+        success = np.where(ended, success, np.asarray(state.task.success))
+        ended |= now
         if ended.all():
             break
-    success = np.asarray(state.task.success)
     return OracleRollout(
         success=success, length=length, failed_skill=np.asarray(oracle.failed_skill),
         actions=_stack(frames, "action"), skill_index=_stack(frames, "skill"),
