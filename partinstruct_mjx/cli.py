@@ -1,4 +1,4 @@
-"""The `partinstruct` command line: simulate, convert, episodes, render, bench."""
+"""The `partinstruct` command line: simulate, convert, episodes, demos, render, bench."""
 
 from __future__ import annotations
 
@@ -32,6 +32,9 @@ def main(argv: list[str] | None = None) -> int:
     from partinstruct_mjx.tasks.episodes_cli import add_episodes_parser
 
     add_episodes_parser(commands)
+    from partinstruct_mjx.data.demos_cli import add_demos_parser
+
+    add_demos_parser(commands)
     from partinstruct_mjx.obs.render_cli import add_render_parser
 
     add_render_parser(commands)
@@ -43,15 +46,20 @@ def main(argv: list[str] | None = None) -> int:
                     "default (quality) CoACD settings and an empty cache. ik: batched JAX IK solves/s on the current "
                     "JAX device (compile time separate) and how many targets it and mink reach. pointcloud: JAX point "
                     "clouds/s on the current device (mug_000) and the OpenGL depth path for comparison. pybullet: our CPU env "
-                    "vs PyBullet doing the same work the original's way, in one run.")
-    bench.add_argument("suite", nargs="?", default="cpu_backend", choices=["cpu_backend", "convert", "ik", "pointcloud", "pybullet"],
+                    "vs PyBullet doing the same work the original's way, in one run. demos: successful oracle "
+                    "demos/hour, episodes/s, env steps/s and the time split of `partinstruct demos` on --episodes "
+                    "train episodes (one cold run for the compile overhead, then --repeats warm runs; default 1).")
+    bench.add_argument("suite", nargs="?", default="cpu_backend",
+                       choices=["cpu_backend", "convert", "ik", "pointcloud", "pybullet", "demos"],
                        help="what to measure (default cpu_backend)")
     bench.add_argument("--sources", type=Path, nargs="+", default=[Path("../shared/partnet_samples")],
                        help="convert suite: PartNet-Mobility folders (default ../shared/partnet_samples)")
     bench.add_argument("--batch-sizes", type=int, nargs="+", default=None,
-                       help="default: 1 2 8 32 (cpu_backend), 1 64 1024 16384 (ik), 1 16 256 (pointcloud)")
+                       help="default: 1 2 8 32 (cpu_backend), 1 64 1024 16384 (ik), 1 16 256 (pointcloud), 16 (demos)")
     bench.add_argument("--steps", type=int, default=200, help="control steps per timed run (default 200)")
-    bench.add_argument("--repeats", type=int, default=5, help="timed runs per batch size (default 5)")
+    bench.add_argument("--repeats", type=int, default=None,
+                       help="timed runs per batch size (default 5; 1 for demos, whose runs take minutes)")
+    bench.add_argument("--episodes", type=int, default=64, help="demos suite: train episodes per run (default 64)")
     bench.add_argument("--threads", type=int, default=None, help="worker threads/processes (default: all cores)")
     bench.add_argument("--output", type=Path, default=DEFAULT_BENCH_OUTPUT,
                        help=f"markdown file to update (default {DEFAULT_BENCH_OUTPUT}); '-' prints only")
@@ -160,6 +168,8 @@ def _bench(args) -> int:
     from partinstruct_mjx.provenance import provenance
 
     command = " ".join(["partinstruct", "bench", *sys.argv[2:]]) if sys.argv[1:2] == ["bench"] else "partinstruct bench"
+    if args.repeats is None:
+        args.repeats = 1 if args.suite == "demos" else 5
     if args.suite == "convert":
         from partinstruct_mjx.assets.convert import ConvertConfig
         from partinstruct_mjx.bench import conversion
@@ -200,6 +210,8 @@ def _bench(args) -> int:
         table = pybullet_baseline.markdown(baseline, ours, "mug_000")
         print(table)
         title, heading = "pybullet", "CPU env vs PyBullet (the original's engine and method)"
+    elif args.suite == "demos":
+        title, heading, table = "demos", "Demonstration synthesis", _bench_demos(args)
     else:
         title, heading, table = "cpu_backend", "CPU backend (C MuJoCo, thread pool)", _bench_cpu_backend(args)
     body = f"## {heading}\n\n" + provenance_lines(provenance(), command) + "\n" + table
@@ -207,6 +219,27 @@ def _bench(args) -> int:
         write_section(args.output, title, body)
         print(f"wrote {args.output}")
     return 0
+
+
+def _bench_demos(args) -> str:
+    import jax
+
+    from partinstruct_mjx.bench import demos
+    from partinstruct_mjx.jax_setup import enable_compilation_cache
+
+    cache = enable_compilation_cache()
+    episodes = demos.bench_episodes(args.episodes)
+    results = []
+    for batch in args.batch_sizes or [16]:
+        result = demos.measure(episodes, batch, args.repeats, args.threads)
+        results.append(result)
+        print(f"batch {batch:>3}: {result.demos_per_hour:>9,.0f} demos/hour, {result.episodes_per_s:.2f} episodes/s, "
+              f"{result.env_steps_per_s:,.0f} env steps/s, oracle success {result.successes}/{result.episodes}, "
+              f"compile {result.compile_s:.1f} s")
+    device = f"{jax.default_backend()} ({jax.devices()[0].device_kind})"
+    table = demos.markdown(results, episodes, device, f"on ({cache})")
+    print(table)
+    return table
 
 
 def _bench_cpu_backend(args) -> str:

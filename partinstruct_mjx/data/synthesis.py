@@ -1,0 +1,375 @@
+"""Demonstration synthesis: run the oracle on episodes in batches, render point clouds of the successes, store them.
+
+`synthesize` groups episodes by object (one env per object and batch size, reused for all its batches; a group's
+short last batch runs in the next power-of-two size, padded by repeating episodes), runs `run_oracle`, renders the
+static camera's clouds of every successful episode's steps with the JAX point renderer and commits each batch
+to a `DemoWriter` run directory, so an interrupted run resumes where it stopped. `select_episodes` picks the
+episodes the CLI asks for (a count spread over task types and categories of a split, or a metadata file).
+
+Reproducibility: every random draw derives from the seed and the episode's own seed or ep_id (the oracle's and the
+clouds'), and an object's episodes are batched in ep_id order, so the same episodes with the same seed and sampler
+give the same demos however often the run was interrupted (the C backend steps each scene independently).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+from collections import Counter
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from partinstruct_mjx.assets.catalog import load_catalog
+from partinstruct_mjx.assets.partnet import category_slug
+from partinstruct_mjx.errors import DataError, TaskError
+from partinstruct_mjx.paths import assets_root
+from partinstruct_mjx.tasks.episodes import (SPLIT_ID_STRIDE, SPLIT_TYPES, SPLITS, Episode, generate_episodes,
+                                             read_metadata, validate_episodes)
+
+ALL_TYPES = "all-types"
+"""Pseudo-split: train for task types 1-10 plus test4 for 11-16 (every type once, for a per-type table)."""
+SAMPLERS = ("stride", "fps")
+RENDER_CHUNK = 64
+"""Clouds rendered per call of the jitted renderer (the last chunk is padded, so it compiles once)."""
+ENV_NAME = "PartInstructMJX"
+
+
+def env_args(backend: str = "mujoco", sampler: str = "stride", seed: int = 0) -> dict:
+    """The robomimic-style env_args of a run directory; a resumed run must match them (DemoWriter checks)."""
+    from partinstruct_mjx.env import STEP_LIMIT, STEP_LIMIT_TEST4
+
+    return {"env_name": ENV_NAME, "type": "partinstruct_mjx",
+            "env_kwargs": {"backend": backend, "skill_mode": False, "rotation": "euler", "control_freq": 20,
+                           "step_limit": STEP_LIMIT, "step_limit_test4": STEP_LIMIT_TEST4},
+            "synthesis": {"oracle": "partinstruct_mjx.oracle", "seed": seed, "pcd_sampler": sampler,
+                          "pcd_camera": "agentview", "pcd_size": 1024}}
+
+
+@dataclass
+class Timing:
+    """Wall seconds per phase, accumulated over a run, and one record per batch (the first holds the compiles)."""
+
+    env_s: float = 0.0
+    """Building envs (scene compile, part geometry), one per object."""
+    rollout_s: float = 0.0
+    """run_oracle: reset, physics, IK, predicates and the oracle (including their JIT compiles)."""
+    render_s: float = 0.0
+    """Point clouds of the successful episodes (including the renderer's compile)."""
+    write_s: float = 0.0
+    """DemoWriter.add of every batch and the final merge (finalize)."""
+    wall_s: float = 0.0
+    batches: list[dict] = field(default_factory=list)
+
+    def as_dict(self) -> dict:
+        return {"env_s": self.env_s, "rollout_s": self.rollout_s, "render_s": self.render_s, "write_s": self.write_s,
+                "wall_s": self.wall_s, "batches": self.batches}
+
+
+def synthesize(episodes: list[Episode], out_dir: str | os.PathLike, batch_size: int = 16, seed: int = 0,
+               sampler: str = "stride", backend: str = "mujoco", progress: bool = True,
+               assets: str | os.PathLike | None = None, num_threads: int | None = None,
+               render_chunk: int = RENDER_CHUNK) -> dict:
+    """Run the oracle on `episodes` (skipping those already committed in `out_dir`) and store the successful demos.
+
+    Returns the run directory's summary (see DemoWriter.finalize) plus 'run': this call's counts and its Timing.
+    On KeyboardInterrupt the committed batches are finalized before the interrupt is re-raised. A demo's
+    initial_state is the MuJoCo physics state after reset; the mjx backend has none, so there it is the first
+    step's joint_states, gripper_state and object_pose.
+    """
+    from tqdm import tqdm
+
+    from partinstruct_mjx.data.demos import DemoWriter
+
+    if batch_size < 1:
+        raise DataError(f"batch_size must be >= 1, got {batch_size}")
+    if sampler not in SAMPLERS:
+        raise DataError(f"unknown point-cloud sampler '{sampler}'; expected one of {', '.join(SAMPLERS)}")
+    counts = Counter(e.ep_id for e in episodes)
+    repeated = sorted(ep_id for ep_id, n in counts.items() if n > 1)
+    if repeated:
+        raise DataError(f"episode {repeated[0]} is given more than once")
+    root = Path(assets) if assets is not None else assets_root()
+    objects = _object_paths(episodes, root)
+    writer = DemoWriter(out_dir, env_args(backend, sampler, seed))
+    done = writer.finished_ids()
+    todo = [e for e in episodes if e.ep_id not in done]
+    groups: dict[tuple[str, str], list[Episode]] = {}
+    for episode in sorted(todo, key=lambda e: (category_slug(e.obj_class), e.obj_id, e.ep_id)):
+        groups.setdefault((category_slug(episode.obj_class), episode.obj_id), []).append(episode)
+
+    timing = Timing()
+    start = time.perf_counter()
+    processed = successes = 0
+    bar = tqdm(total=len(todo), desc="demos", unit="episode", disable=not progress or not todo)
+    try:
+        for key, mine in groups.items():
+            workers: dict[int, _ObjectWorker] = {}
+            try:
+                for first in range(0, len(mine), batch_size):
+                    batch = mine[first:first + batch_size]
+                    size = _bucket(len(batch), batch_size)
+                    if size not in workers:
+                        workers[size] = _ObjectWorker(objects[key], size, backend, num_threads, timing)
+                    demos, failures, record = workers[size].run(batch, jax.random.PRNGKey(seed), sampler,
+                                                                render_chunk)
+                    tick = time.perf_counter()
+                    writer.add(demos, failures)
+                    record["write_s"] = time.perf_counter() - tick
+                    timing.write_s += record["write_s"]
+                    timing.batches.append(record)
+                    processed += len(batch)
+                    successes += len(demos)
+                    elapsed = time.perf_counter() - start
+                    bar.set_postfix(demos_per_s=f"{successes / elapsed:.2f}", success=f"{successes / processed:.0%}",
+                                    refresh=False)
+                    bar.update(len(batch))
+            finally:
+                for worker in workers.values():
+                    worker.close()
+    except KeyboardInterrupt:
+        bar.close()
+        writer.finalize()
+        raise
+    bar.close()
+    tick = time.perf_counter()
+    summary = writer.finalize()
+    timing.write_s += time.perf_counter() - tick
+    timing.wall_s = time.perf_counter() - start
+    summary["run"] = {"requested": len(episodes), "already_done": len(episodes) - len(todo), "processed": processed,
+                      "successes": successes, "batch_size": batch_size, "timing": timing.as_dict()}
+    return summary
+
+
+def _bucket(count: int, batch_size: int) -> int:
+    """Env batch size for `count` episodes: the next power of two, at most `batch_size`. Every new batch size (and
+    object category) compiles the oracle and env step again, so sizes are few; the rest is padding."""
+    return min(batch_size, 1 << (count - 1).bit_length())
+
+
+def _object_paths(episodes: list[Episode], root: Path) -> dict[tuple[str, str], Path]:
+    """(category, obj_id) -> object.xml of every episode's object; TaskError for one the catalog lacks."""
+    catalog = {(entry["category"], entry["id"]): root / entry["path"] / "object.xml" for entry in load_catalog(root)}
+    paths = {}
+    for episode in episodes:
+        key = (category_slug(episode.obj_class), episode.obj_id)
+        if key not in catalog:
+            raise TaskError(f"episode {episode.ep_id}: object {key[0]}/{key[1]} is not in {root}/catalog.json")
+        paths[key] = catalog[key]
+    return paths
+
+
+class _ObjectWorker:
+    """One env (and point-cloud surface) of one object and batch size, reused for all its batches."""
+
+    def __init__(self, object_xml: Path, batch_size: int, backend: str, num_threads: int | None, timing: Timing):
+        from partinstruct_mjx.env import EnvConfig, PartInstructEnv
+        from partinstruct_mjx.obs import point_renderer
+        from partinstruct_mjx.obs.cameras import AGENTVIEW, scene_camera
+
+        tick = time.perf_counter()
+        self.batch_size = batch_size
+        self.timing = timing
+        self.env = PartInstructEnv(object_xml, batch_size,
+                                   EnvConfig(backend=backend, skill_mode=False, num_threads=num_threads))
+        self.surface = point_renderer.surface_points(self.env.scene, self.env.geometry)
+        self.camera = scene_camera(self.env.scene, AGENTVIEW)
+        self.env_s = time.perf_counter() - tick
+        timing.env_s += self.env_s
+
+    def close(self) -> None:
+        self.env.close()
+
+    def run(self, batch: list[Episode], key: jax.Array, sampler: str, chunk: int):
+        """Demos and failures of one batch (padded to the env's size by repeating its episodes) and its timings."""
+        from partinstruct_mjx.data.demos import Demo
+        from partinstruct_mjx.oracle.rollout import run_oracle
+
+        rollout_key, cloud_key = jax.random.split(key)
+        padded = [batch[i % len(batch)] for i in range(self.batch_size)]
+        tick = time.perf_counter()
+        rollout = run_oracle(self.env, padded, rollout_key, record=True)
+        rollout_s = time.perf_counter() - tick
+        self.timing.rollout_s += rollout_s
+
+        real = len(batch)
+        length = np.asarray(rollout.length[:real], int)
+        # A scene can keep being stepped after its episode ended (other scenes still run); task success latches, so
+        # only a scene whose oracle never failed counts as a success of its recorded prefix.
+        success = np.asarray(rollout.success[:real], bool) & (np.asarray(rollout.failed_skill[:real]) < 0)
+        winners = [b for b in range(real) if success[b] and length[b] > 0]
+        tick = time.perf_counter()
+        clouds = self._clouds(rollout, winners, length, [batch[b].ep_id for b in winners], cloud_key, sampler, chunk)
+        render_s = time.perf_counter() - tick
+        self.timing.render_s += render_s
+
+        initial = rollout.initial_state
+        demos = []
+        for b, cloud in zip(winners, clouds):
+            steps = length[b]
+            obs = {"agentview_pcd": cloud[..., :3], "agentview_part_pcd": cloud}
+            obs |= {name: rollout.obs[name][b, :steps] for name in ("tcp_pose", "joint_states", "gripper_state",
+                                                                    "object_pose")}
+            state = initial[b] if initial is not None else np.concatenate(
+                [rollout.obs[name][b, 0] for name in ("joint_states", "gripper_state", "object_pose")])
+            demos.append(Demo(batch[b], rollout.actions[b, :steps], obs, rollout.skill_index[b, :steps], state))
+        failures = [(batch[b], _failure_name(batch[b], int(rollout.failed_skill[b]), int(length[b])))
+                    for b in range(real) if b not in winners]
+        record = {"object": batch[0].obj_id, "category": category_slug(batch[0].obj_class), "episodes": real,
+                  "successes": len(demos), "steps": int(length.sum()),
+                  "demo_steps": int(sum(length[b] for b in winners)),
+                  "scene_steps": int(self.batch_size * rollout.actions.shape[1]),
+                  "env_s": self.env_s, "rollout_s": rollout_s, "render_s": render_s}
+        self.env_s = 0.0
+        return demos, failures, record
+
+    def _clouds(self, rollout, rows: list[int], length: np.ndarray, ep_ids: list[int], key: jax.Array,
+                sampler: str, chunk: int) -> list[np.ndarray]:
+        """(T_b, 1024, 4) agentview_part_pcd per row b in `rows`, rendered in fixed-size chunks of steps."""
+        from partinstruct_mjx.obs import point_renderer
+
+        if not rows:
+            return []
+        pos = np.concatenate([rollout.body_pos[b, :length[b]] for b in rows])
+        quat = np.concatenate([rollout.body_quat[b, :length[b]] for b in rows])
+        mask = np.concatenate([rollout.target_mask[b, :length[b]] for b in rows])
+        keys = np.concatenate([np.asarray(jax.random.split(jax.random.fold_in(key, ep_id), length[b]))
+                               for b, ep_id in zip(rows, ep_ids)])
+        out = []
+        for first in range(0, len(pos), chunk):
+            part = slice(first, first + chunk)
+            n = len(pos[part])
+            cloud = point_renderer.render_batch(
+                self.surface, self.camera, jnp.asarray(_pad(pos[part], chunk)), jnp.asarray(_pad(quat[part], chunk)),
+                jnp.asarray(_pad(mask[part], chunk)), jnp.asarray(_pad(keys[part], chunk)), sampler=sampler)
+            out.append(np.concatenate([np.asarray(cloud.points)[:n], np.asarray(cloud.target)[:n, :, None]], -1))
+        clouds = np.concatenate(out).astype(np.float32)
+        return np.split(clouds, np.cumsum([length[b] for b in rows])[:-1])
+
+
+def _pad(rows: np.ndarray, size: int) -> np.ndarray:
+    """`rows` extended to `size` rows by repeating its last row."""
+    return rows if len(rows) == size else np.concatenate([rows, np.repeat(rows[-1:], size - len(rows), 0)])
+
+
+def _failure_name(episode: Episode, failed_skill: int, length: int) -> str:
+    """Why an episode is not a demo: the chain skill the oracle failed, 'step_limit', or 'no_task_success' (the
+    oracle executed the whole chain but the task's goals did not hold)."""
+    if 0 <= failed_skill < len(episode.chain):
+        return episode.chain[failed_skill].name
+    from partinstruct_mjx.env import STEP_LIMIT, STEP_LIMIT_TEST4
+
+    limit = STEP_LIMIT_TEST4 if episode.split == "test4" else STEP_LIMIT
+    return "step_limit" if length >= limit else "no_task_success"
+
+
+# --- choosing episodes ------------------------------------------------------------------------------------------
+
+
+def split_types(split: str) -> dict[str, tuple[int, ...]]:
+    """split -> its task types; 'all-types' is train (1-10) plus test4 (11-16). TaskError for an unknown split."""
+    if split == ALL_TYPES:
+        return {"train": SPLIT_TYPES["train"], "test4": SPLIT_TYPES["test4"]}
+    if split not in SPLITS:
+        raise TaskError(f"unknown split '{split}'; expected one of {', '.join(SPLITS)} or {ALL_TYPES}")
+    return {split: SPLIT_TYPES[split]}
+
+
+def select_episodes(split: str | None = "train", count: int | None = None, seed: int = 0,
+                    types: list[int] | None = None, categories: list[str] | None = None,
+                    metadata: str | os.PathLike | None = None,
+                    assets: str | os.PathLike | None = None) -> list[Episode]:
+    """The episodes a synthesis run works on, in a deterministic order that interleaves task types and categories.
+
+    Without `metadata`, episodes are generated (seeded, like `partinstruct episodes`) with just enough per
+    (split, category, type) for `count`; with it, the file's episodes are used (`split` None keeps all). `types`
+    and `categories` filter; `count` keeps the first episodes of the interleaved order (every selected type is
+    represented once count >= #types). Episodes are always generated for the whole catalog and then filtered, and
+    numbered draw-first (see `_renumbered`), so an episode keeps its ep_id whatever the filters and the count.
+    """
+    root = Path(assets) if assets is not None else assets_root()
+    catalog = load_catalog(root)
+    if not catalog:
+        raise TaskError(f"{root}: no catalog.json with objects")
+    if count is not None and count < 1:
+        raise TaskError(f"the number of episodes must be >= 1, got {count}")
+    wanted = split_types(split) if split is not None else None
+    known = sorted({entry["category"] for entry in catalog})
+    for category in categories or ():
+        if category_slug(category) not in known:
+            raise TaskError(f"unknown category '{category}'; the catalog has {', '.join(known)}")
+    chosen_categories = {category_slug(c) for c in categories} if categories else None
+    if types and wanted is not None:
+        allowed = sorted({t for ts in wanted.values() for t in ts})
+        bad = [t for t in types if t not in allowed]
+        if bad:
+            raise TaskError(f"task type {bad[0]} is not in split {split} (types {allowed[0]}-{allowed[-1]})")
+
+    def keep(episode: Episode) -> bool:
+        return ((wanted is None or episode.task_type in wanted.get(episode.split, ()))
+                and (not types or episode.task_type in types)
+                and (chosen_categories is None or category_slug(episode.obj_class) in chosen_categories))
+
+    if metadata is not None:
+        episodes = read_metadata(metadata)
+        try:
+            validate_episodes(episodes, catalog)
+        except TaskError as err:
+            raise TaskError(f"{metadata}: {err}") from None
+        episodes = [e for e in episodes if keep(e)]
+        if not episodes:
+            raise TaskError(f"{metadata}: no episodes of split {split}" + (f", types {types}" if types else "")
+                            + (f", categories {categories}" if categories else ""))
+    else:
+        cells = 0
+        for name, its_types in wanted.items():
+            members = {e["category"] for e in catalog if name in e["splits"]}
+            members &= chosen_categories if chosen_categories is not None else members
+            cells += len(members) * len([t for t in its_types if not types or t in types])
+        if cells == 0:
+            raise TaskError(f"split {split} has no objects of categories {categories}")
+        per_type = math.ceil(count / cells) if count is not None else 1
+        episodes = [e for e in _renumbered(generate_episodes(catalog, root, seed, per_type, tuple(wanted)), per_type)
+                    if keep(e)]
+    ordered = interleave(episodes)
+    return ordered if count is None else ordered[:count]
+
+
+def _renumbered(episodes: list[Episode], per_type: int) -> list[Episode]:
+    """Episodes of `generate_episodes` with ep_ids numbered draw-first: split base + draw x cells + cell, where a cell
+    is a (category, type) of the split. generate_episodes numbers cell-first, so its ids change with per_type; these
+    do not, so a run asked for more episodes later keeps the ids (and the resume) of the smaller one."""
+    out = []
+    for split in sorted({e.split for e in episodes}, key=SPLITS.index):
+        mine = sorted((e for e in episodes if e.split == split), key=lambda e: e.ep_id)
+        cells = len(mine) // per_type
+        base = SPLITS.index(split) * SPLIT_ID_STRIDE
+        out += [replace(e, ep_id=base + (index % per_type) * cells + index // per_type) for index, e in enumerate(mine)]
+    return sorted(out, key=lambda e: e.ep_id)
+
+
+def interleave(episodes: list[Episode]) -> list[Episode]:
+    """Round-robin over task types; within a type, by draw index and then categories rotated by the type's rank, so
+    a prefix spreads over types first and over categories second."""
+    by_type: dict[int, list[Episode]] = {}
+    for episode in sorted(episodes, key=lambda e: e.ep_id):
+        by_type.setdefault(episode.task_type, []).append(episode)
+    queues = []
+    for rank, type_id in enumerate(sorted(by_type)):
+        mine = by_type[type_id]
+        categories = sorted({category_slug(e.obj_class) for e in mine})
+        draw: dict[tuple[str, str], int] = {}
+        keyed = []
+        for episode in mine:
+            cell = (episode.split, category_slug(episode.obj_class))
+            draw[cell] = draw.get(cell, -1) + 1
+            keyed.append(((draw[cell], (categories.index(cell[1]) - rank) % len(categories), episode.ep_id), episode))
+        queues.append([episode for _, episode in sorted(keyed, key=lambda item: item[0])])
+    ordered = []
+    for i in range(max((len(q) for q in queues), default=0)):
+        ordered += [q[i] for q in queues if i < len(q)]
+    return ordered

@@ -1,0 +1,151 @@
+"""`partinstruct demos`: what a run writes, resume, reproducibility, cloud shapes, replay, episode choice, help."""
+
+import json
+from collections import Counter
+
+import numpy as np
+import pytest
+
+from partinstruct_mjx.assets.catalog import load_catalog
+from partinstruct_mjx.cli import main
+from partinstruct_mjx.data.demos import read_demos
+from partinstruct_mjx.data.synthesis import select_episodes
+from partinstruct_mjx.paths import assets_root
+from partinstruct_mjx.tasks.episodes import generate_episodes, write_metadata
+
+
+@pytest.fixture(scope="module")
+def metadata(tmp_path_factory):
+    """Two grasp and two touch train episodes of one bottle (one object and batch size: one compile)."""
+    root = assets_root()
+    episodes = generate_episodes([e for e in load_catalog(root) if e["category"] == "bottle"], root, seed=0,
+                                 per_type=12, splits=("train",))
+    count = Counter((e.obj_id, e.task_type) for e in episodes)
+    obj_id = max(sorted({e.obj_id for e in episodes}), key=lambda o: min(count[o, 1], count[o, 2]))
+    chosen = [e for t in (1, 2) for e in [e for e in episodes if e.obj_id == obj_id and e.task_type == t][:2]]
+    assert len(chosen) == 4
+    path = tmp_path_factory.mktemp("episodes") / "bottle.json"
+    write_metadata(chosen, path)
+    return path
+
+
+def demos(metadata, out, count, *extra):
+    return main(["demos", "--metadata", str(metadata), "--episodes", str(count), "--batch-size", "2", "--out",
+                 str(out), "--quiet", *extra])
+
+
+@pytest.fixture(scope="module")
+def run_dir(metadata, tmp_path_factory):
+    out = tmp_path_factory.mktemp("demos") / "run"
+    assert demos(metadata, out, 2) == 0
+    return out
+
+
+def test_run_writes_demos_sidecars_and_summary(run_dir):
+    summary = json.loads((run_dir / "summary.json").read_text())
+    assert summary["episodes"] == 2 and summary["successes"] + summary["failures"] == 2
+    assert sorted(summary["per_task_type"]) == ["1", "2"]
+    sidecars = sorted(run_dir.glob("episodes/*.json"))
+    assert len(sidecars) == 2
+    records = [json.loads(p.read_text()) for p in sidecars]
+    for record in records:
+        assert record["success"] == (record["failing_skill"] is None)
+        if not record["success"]:
+            assert record["failing_skill"] in ("grasp_obj", "touch_obj", "step_limit", "no_task_success")
+    assert (run_dir / "metadata.json").exists()
+    assert (run_dir / "data" / "bottle.hdf5").exists() == (summary["successes"] > 0)
+    env_args = json.loads((run_dir / "progress.json").read_text())["env_args"]
+    assert env_args["env_kwargs"]["skill_mode"] is False and env_args["synthesis"]["seed"] == 0
+
+
+def test_demos_hold_clouds_and_state_per_step(run_dir):
+    if not (run_dir / "data" / "bottle.hdf5").exists():
+        pytest.skip("the oracle succeeded on no episode, so there is no demo to inspect")
+    for _, demo in read_demos(run_dir / "data" / "bottle.hdf5"):
+        steps = demo["attrs"]["num_samples"]
+        obs = demo["obs"]
+        assert demo["actions"].shape == (steps, 7) and demo["skill_index"].shape == (steps,)
+        assert obs["agentview_pcd"].shape == (steps, 1024, 3) and obs["agentview_pcd"].dtype == np.float32
+        assert obs["agentview_part_pcd"].shape == (steps, 1024, 4)
+        np.testing.assert_array_equal(obs["agentview_part_pcd"][..., :3], obs["agentview_pcd"])
+        assert set(np.unique(obs["agentview_part_pcd"][..., 3])) <= {0.0, 1.0}
+        assert obs["agentview_part_pcd"][..., 3].any(), "the grasped/touched part is never in view"
+        assert (obs["agentview_pcd"][..., 2] > 0).all(), "points behind the camera"
+        for key, size in (("tcp_pose", 7), ("joint_states", 7), ("gripper_state", 1), ("object_pose", 7)):
+            assert obs[key].shape == (steps, size)
+
+
+def test_rerun_resumes_and_more_episodes_adds_only_new_ones(metadata, run_dir, capsys):
+    ledger = json.loads((run_dir / "progress.json").read_text())["episodes"]
+    shards = sorted(p.name for p in run_dir.glob("shards/*/*"))
+    capsys.readouterr()
+    assert demos(metadata, run_dir, 2) == 0
+    assert "0 episodes run now" in capsys.readouterr().out
+    assert json.loads((run_dir / "progress.json").read_text())["episodes"] == ledger
+    assert sorted(p.name for p in run_dir.glob("shards/*/*")) == shards
+
+    assert demos(metadata, run_dir, 4) == 0
+    assert "2 episodes run now" in capsys.readouterr().out
+    now = json.loads((run_dir / "progress.json").read_text())["episodes"]
+    assert len(now) == 4 and {k: now[k] for k in ledger} == ledger
+    assert json.loads((run_dir / "summary.json").read_text())["episodes"] == 4
+
+
+def test_same_arguments_give_the_same_demos(metadata, run_dir, tmp_path):
+    assert demos(metadata, tmp_path, 2) == 0
+    first = {json.loads(p.read_text())["ep_id"]: json.loads(p.read_text()) for p in tmp_path.glob("episodes/*")}
+    again = {ep_id: json.loads((run_dir / "episodes" / f"{ep_id}.json").read_text()) for ep_id in first}
+    for ep_id, record in first.items():
+        assert (record["success"], record["steps"], record["failing_skill"]) == (
+            again[ep_id]["success"], again[ep_id]["steps"], again[ep_id]["failing_skill"])
+    if (tmp_path / "data" / "bottle.hdf5").exists():
+        stored = {d["attrs"]["ep_id"]: d for _, d in read_demos(run_dir / "data" / "bottle.hdf5")}
+        for _, a in read_demos(tmp_path / "data" / "bottle.hdf5"):
+            b = stored[a["attrs"]["ep_id"]]
+            np.testing.assert_array_equal(a["actions"], b["actions"])
+            np.testing.assert_array_equal(a["obs"]["agentview_part_pcd"], b["obs"]["agentview_part_pcd"])
+
+
+def test_other_settings_are_refused_for_an_existing_directory(metadata, run_dir, capsys):
+    assert demos(metadata, run_dir, 2, "--seed", "1") == 2
+    assert "env_args" in capsys.readouterr().err
+
+
+def test_replay_reproduces_stored_demos(run_dir, capsys):
+    if not (run_dir / "data" / "bottle.hdf5").exists():
+        pytest.skip("the oracle succeeded on no episode, so there is no demo to replay")
+    capsys.readouterr()
+    assert main(["demos", "--replay", str(run_dir / "data" / "bottle.hdf5"), "--batch-size", "2", "--limit", "2"]) == 0
+    out = capsys.readouterr().out
+    assert "demos reach task success within their stored length" in out and "NO" not in out
+
+
+def test_episode_choice_spreads_over_types_and_categories():
+    ten = select_episodes("train", 10)
+    assert sorted(e.task_type for e in ten) == list(range(1, 11))
+    assert len({e.obj_class for e in ten}) == 10
+    sixteen = select_episodes("all-types", 16)
+    assert sorted(e.task_type for e in sixteen) == list(range(1, 17))
+    assert {e.split for e in sixteen if e.task_type > 10} == {"test4"}
+    mugs = select_episodes("train", 3, types=[2], categories=["mug"])
+    assert [(e.task_type, e.obj_class) for e in mugs] == [(2, "mug")] * 3
+    # an ep_id names the same episode whatever the filters and the count
+    seeds = {e.ep_id: e.seed for e in select_episodes("train", 400)}
+    assert all(seeds[e.ep_id] == e.seed for e in ten + mugs)
+
+
+@pytest.mark.parametrize("args, message", [(["--split", "test9"], "unknown split"),
+                                           (["--types", "12"], "not in split train"),
+                                           (["--categories", "teapot"], "unknown category")])
+def test_bad_input_exits_2(tmp_path, capsys, args, message):
+    assert main(["demos", "--out", str(tmp_path / "out"), *args]) == 2
+    assert message in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()
+
+
+def test_help_explains_outputs_and_resume(capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        main(["demos", "--help"])
+    assert exit_info.value.code == 0
+    out = capsys.readouterr().out
+    assert "data/<category>.hdf5" in out and "resume" in out and "--replay" in out
