@@ -214,12 +214,17 @@ def hold_action(tcp_pose, finger: float = panda.FINGER_OPEN) -> np.ndarray:
     return np.concatenate([pose[:, 4:], euler, np.full((len(pose), 1), finger)], axis=1)
 
 
+def original_pose(quat, pos):
+    """(B, 7) poses in the original's layout [qx, qy, qz, qw, x, y, z] from MuJoCo's (w, x, y, z) and positions."""
+    quat = jnp.asarray(quat, jnp.float32)
+    return jnp.concatenate([quat[:, 1:], quat[:, :1], jnp.asarray(pos, jnp.float32)], axis=1)
+
+
 @jax.jit
 def observe(data: SceneState, task: progress.TaskState) -> dict:
     """Proprioception in the original's layout (spec 2.1) and the index of the current instruction."""
-    quat = jnp.asarray(data.tcp_quat, jnp.float32)
     return {
-        "tcp_pose": jnp.concatenate([quat[:, 1:], quat[:, :1], jnp.asarray(data.tcp_pos, jnp.float32)], axis=1),
+        "tcp_pose": original_pose(data.tcp_quat, data.tcp_pos),
         "joint_states": jnp.asarray(data.arm_qpos, jnp.float32),
         "gripper_state": jnp.asarray(data.finger_qpos[:, :1], jnp.float32),
         "instruction_index": task.skill_index,

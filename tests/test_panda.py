@@ -68,3 +68,22 @@ def test_wrist_camera_looks_along_the_approach_axis():
     np.testing.assert_allclose(-cam_rot[:, 2], hand_rot[:, 2], atol=1e-9)   # optical axis = +z of the hand
     np.testing.assert_allclose(cam_rot[:, 0], hand_rot[:, 1], atol=1e-9)    # image x = +y of the hand
     assert abs(model.cam_fovy[cam] - 73.7398) < 1e-3
+
+
+
+def test_closed_gripper_presses_a_thin_part_harder_than_grasping_needs():
+    """Closed on a 1.8 cm section (each finger at 9 mm) the squeeze is > 20 N per finger (a plain position servo gave
+    13.5 N); the open command still targets the full 0.04 opening."""
+    from partinstruct_mjx.tasks.predicates import GRASP_FORCE
+
+    model, data = _robot()
+    gripper = model.actuator(panda.GRIPPER_ACTUATOR).id
+    data.qpos[7:9] = 0.009
+    data.act[model.actuator_actadr[gripper]] = panda.FINGER_CLOSED
+    mujoco.mj_forward(model, data)
+    per_finger = -0.5 * data.actuator_force[gripper]
+    assert per_finger > GRASP_FORCE
+    data.qpos[7:9] = panda.FINGER_OPEN
+    data.act[model.actuator_actadr[gripper]] = panda.FINGER_OPEN
+    mujoco.mj_forward(model, data)
+    assert abs(data.actuator_force[gripper]) < 1e-6

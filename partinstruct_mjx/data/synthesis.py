@@ -17,7 +17,7 @@ import math
 import os
 import time
 from collections import Counter
-from dataclasses import dataclass, field, replace
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import jax
@@ -66,8 +66,7 @@ class Timing:
     batches: list[dict] = field(default_factory=list)
 
     def as_dict(self) -> dict:
-        return {"env_s": self.env_s, "rollout_s": self.rollout_s, "render_s": self.render_s, "write_s": self.write_s,
-                "wall_s": self.wall_s, "batches": self.batches}
+        return asdict(self)
 
 
 def synthesize(episodes: list[Episode], out_dir: str | os.PathLike, batch_size: int = 16, seed: int = 0,

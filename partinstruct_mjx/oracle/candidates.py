@@ -18,6 +18,7 @@ import numpy as np
 
 from partinstruct_mjx.control.rotations import matrix_to_quat
 from partinstruct_mjx.sim.scene import TABLE_HEIGHT
+from partinstruct_mjx.tasks.predicates import masked_mean
 
 PAD_CENTRE = 0.0394
 """Distance from the TCP along its z axis to the middle of the finger pads (hand frame z 0.0944 vs 0.055)."""
@@ -83,8 +84,8 @@ def grasp_candidates(object_points, object_normals, object_valid, part_points, p
     probabilities = part_valid / jnp.maximum(part_valid.sum(), 1)
     picked = jax.random.choice(key, part_points.shape[0], (NUM_SEEDS,), p=probabilities)
     seeds, normals = part_points[picked], part_normals[picked]
-    part_centre = (part_points * part_valid[:, None]).sum(0) / jnp.maximum(part_valid.sum(), 1)
-    object_centre = (object_points * object_valid[:, None]).sum(0) / jnp.maximum(object_valid.sum(), 1)
+    part_centre = masked_mean(part_points, part_valid)
+    object_centre = masked_mean(object_points, object_valid)
     extent = jnp.linalg.norm(jnp.where(part_valid[:, None], part_points, part_centre).max(0)
                              - jnp.where(part_valid[:, None], part_points, part_centre).min(0))
 
@@ -200,8 +201,8 @@ def touch_candidates(object_points, object_valid, part_points, part_valid, push_
 
     push_side (3,): the side a following push needs (zero when no push follows); it overrides the ranking.
     """
-    part_centre = (part_points * part_valid[:, None]).sum(0) / jnp.maximum(part_valid.sum(), 1)
-    object_centre = (object_points * object_valid[:, None]).sum(0) / jnp.maximum(object_valid.sum(), 1)
+    part_centre = masked_mean(part_points, part_valid)
+    object_centre = masked_mean(object_points, object_valid)
     lo = jnp.where(part_valid[:, None], part_points, jnp.inf).min(0)
     hi = jnp.where(part_valid[:, None], part_points, -jnp.inf).max(0)
 

@@ -295,8 +295,7 @@ def _act_one(o: OracleState, data, geo: PartGeometry, rows):
 
     # Rotate: turn the hand so the part's direction from the object origin reaches the goal direction.
     part_points, part_valid = predicates.part_cloud(data, geo, o.masks, jnp.maximum(o.part[index], 0))
-    mean = (part_points * part_valid[:, None]).sum(0) / jnp.maximum(part_valid.sum(), 1)
-    vector = mean - data.object_pos
+    vector = predicates.masked_mean(part_points, part_valid) - data.object_pos
     flat = o.on_table_turn[index]
     vector = jnp.where(flat, vector * jnp.array([1.0, 1.0, 0.0]), vector)
     vector = vector / jnp.maximum(jnp.linalg.norm(vector), 1e-9)

@@ -14,7 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from partinstruct_mjx.env import PartInstructEnv
+from partinstruct_mjx.env import PartInstructEnv, original_pose
 from partinstruct_mjx.obs import point_renderer
 from partinstruct_mjx.oracle import machine
 
@@ -72,7 +72,7 @@ def run_oracle(env: PartInstructEnv, episodes: list, key: jax.Array, record: boo
         skill = np.asarray(oracle.skill)
         if record:
             frames.append({"obs": {k: np.asarray(v) for k, v in state.obs.items() if k != "instruction_index"},
-                           "object_pose": _pose(state.data), "body_pos": np.asarray(state.data.body_pos, np.float32),
+                           "object_pose": np.asarray(original_pose(state.data.object_quat, state.data.object_pos)), "body_pos": np.asarray(state.data.body_pos, np.float32),
                            "body_quat": np.asarray(state.data.body_quat, np.float32),
                            "target_mask": np.asarray(_target_masks(oracle, surface, env.geometry)), "skill": skill})
         oracle, action = _act(oracle, state.data, state.task.skills, env.geometry)
@@ -97,8 +97,3 @@ def run_oracle(env: PartInstructEnv, episodes: list, key: jax.Array, record: boo
 def _stack(frames: list[dict], name: str) -> np.ndarray:
     return np.stack([f[name] for f in frames], 1) if frames else np.zeros((0,))
 
-
-def _pose(data) -> np.ndarray:
-    """(B, 7) object pose in the original's layout [qx, qy, qz, qw, x, y, z]."""
-    quat = np.asarray(data.object_quat, np.float32)
-    return np.concatenate([quat[:, 1:], quat[:, :1], np.asarray(data.object_pos, np.float32)], axis=1)

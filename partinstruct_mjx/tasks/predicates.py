@@ -51,6 +51,11 @@ def part_cloud(state, geo: PartGeometry, masks: jnp.ndarray, part: jnp.ndarray, 
     return points, geo.valid[part] & mask
 
 
+def masked_mean(points: jnp.ndarray, valid: jnp.ndarray) -> jnp.ndarray:
+    """Mean (3,) of the valid rows of points (M, 3); zero when none is valid."""
+    return (points * valid[:, None]).sum(axis=0) / jnp.maximum(valid.sum(), 1)
+
+
 def object_points(state, geo: PartGeometry, world: jnp.ndarray | None = None) -> jnp.ndarray:
     """World points of the whole object (M, 3)."""
     if world is not None:
@@ -77,8 +82,7 @@ def at_position(state, target: jnp.ndarray, threshold: jnp.ndarray) -> jnp.ndarr
 def facing(state, geo, masks, part, direction: jnp.ndarray, threshold=FACING_ANGLE, world=None) -> jnp.ndarray:
     """The vector from the object origin to the part's mean point is within `threshold` rad of `direction`."""
     points, valid = part_cloud(state, geo, masks, part, world)
-    mean = (points * valid[:, None]).sum(axis=0) / jnp.maximum(valid.sum(), 1)
-    vector = mean - state.object_pos
+    vector = masked_mean(points, valid) - state.object_pos
     cosine = vector @ direction / jnp.maximum(jnp.linalg.norm(vector) * jnp.linalg.norm(direction), 1e-9)
     return jnp.arccos(jnp.clip(cosine, -1.0, 1.0)) < threshold
 
