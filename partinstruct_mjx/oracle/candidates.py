@@ -34,7 +34,9 @@ HAND_BACK = 0.028
 """The hand capsule starts this far behind the pads' middle (along the approach, plus margin)."""
 HAND_HALF_WIDTH = 0.032
 HAND_HALF_LENGTH = 0.12
-TABLE_CLEARANCE = 0.004
+TABLE_CLEARANCE = 0.002
+TIP_CLEARANCE = 0.006
+"""Free space the open pads' tips keep from the table and from the object surface ahead of them."""
 GRASP_DEPTH = 0.012
 """How far past the seed surface point the pads' middle goes along the approach."""
 PREGRASP_DISTANCE = 0.08
@@ -42,6 +44,8 @@ LINE_RADIUS = 0.008
 CONTACT_BAND = 0.004
 """Points this close to either end of the closed-on section are where a pad lands."""
 MIN_ANTIPODAL = 0.5
+PARALLEL_FACE = 0.3
+"""Surface points whose normal's cosine with the closing axis is below this are left out of the antipodal test."""
 """Smallest mean cosine between the landing surfaces' normals and the pads' pushing directions."""
 OFF_CENTRE_WEIGHT = 10.0
 """Score lost per metre between the grasp and the object's middle (horizontally)."""
@@ -50,6 +54,8 @@ NUM_AZIMUTHS = 8
 NUM_SEEDS = 24
 SEED_INSET = 0.008
 """The grasp line starts this far inside the surface under the seed (the recentring then finds the section)."""
+SIDE_SEED_BIAS = 0.25
+"""Seeds are drawn with weight SIDE_SEED_BIAS + the horizontal length of their normal."""
 MIN_APPROACH_COMPONENT = 0.5
 """An approach direction is used only if this much of it is left across the seed's normal."""
 
@@ -81,7 +87,9 @@ def grasp_candidates(object_points, object_normals, object_valid, part_points, p
     Antipodal sampling: a pad lands on a seed point of the part and closes along its normal; the approach is each
     of APPROACHES made perpendicular to that normal. Points (M, 3) are world-frame with outward unit normals.
     """
-    probabilities = part_valid / jnp.maximum(part_valid.sum(), 1)
+    # Side faces are favoured: flat parts lying on the table are pinched across them, from above.
+    weights = part_valid * (SIDE_SEED_BIAS + jnp.linalg.norm(part_normals[:, :2], axis=-1))
+    probabilities = weights / jnp.maximum(weights.sum(), 1e-9)
     picked = jax.random.choice(key, part_points.shape[0], (NUM_SEEDS,), p=probabilities)
     seeds, normals = part_points[picked], part_normals[picked]
     part_centre = masked_mean(part_points, part_valid)
@@ -131,9 +139,33 @@ def _first_surface(seed, approach, object_points, object_valid):
     return seed + jnp.where(hit.any(), jnp.where(hit, t, jnp.inf).min(), 0.0) * approach
 
 
+def _pad_corners(centre, approach, closing, across):
+    """World z of the open pads' tips (4) and of the hand's lower corners (4) for a grasp centred at `centre`."""
+    corners = jnp.array([[su * PAD_HALF_WIDTH, sv * PAD_OUTER, PAD_HALF_LENGTH + 0.002]
+                         for su in (-1, 1) for sv in (-1, 1)]
+                        + [[su * HAND_HALF_WIDTH, sv * 0.085, -HAND_BACK - 0.028] for su in (-1, 1) for sv in (-1, 1)])
+    return centre[2] + corners @ jnp.stack([across[2], closing[2], approach[2]])
+
+
+def _clear_pad_tips(centre, approach, closing, across, object_points, object_valid):
+    """The grasp centre backed off along the approach until the open pads' tips stop short of the table (downward
+    grasps of flat parts) and of the object surface ahead of them (a lid's knob over the lid): what is left
+    between the pads is what they pinch (at most PAD_HALF_LENGTH of back-off for the surface)."""
+    deficit = TABLE_HEIGHT + TABLE_CLEARANCE + 0.001 - _pad_corners(centre, approach, closing, across)[:4].min()
+    downward = approach[2] < -MIN_APPROACH_COMPONENT
+    table = jnp.where(downward & (deficit > 0), deficit / jnp.maximum(-approach[2], 1e-3), 0.0)
+    d = object_points - centre
+    u, v, t = d @ across, d @ closing, d @ approach
+    ahead = (object_valid & (jnp.abs(u) < PAD_HALF_WIDTH + 0.003) & (jnp.abs(v) > PAD_INNER - 0.005)
+             & (jnp.abs(v) < PAD_OUTER) & (t > 0))
+    surface = jnp.maximum(PAD_HALF_LENGTH + TIP_CLEARANCE + 0.001 - jnp.where(ahead, t, jnp.inf).min(), 0.0)
+    return centre - jnp.maximum(table, jnp.minimum(surface, PAD_HALF_LENGTH)) * approach
+
+
 def _score(centre, approach, closing, object_points, object_normals, object_valid, part_points, part_valid,
            part_centre, extent, object_centre):
     across = jnp.cross(closing, approach)
+    centre = _clear_pad_tips(centre, approach, closing, across, object_points, object_valid)
 
     def local(points):
         d = points - centre
@@ -148,21 +180,19 @@ def _score(centre, approach, closing, object_points, object_normals, object_vali
     v = v - shift
     width = v_max - v_min
     # Antipodal: where each pad lands the surface must face that pad (normals along the closing axis).
+    # Faces parallel to the closing axis (the top and bottom of a flat part) are neither for nor against a grasp.
     along = object_normals @ closing
-    side_max = between & (v > v_max - CONTACT_BAND)
-    side_min = between & (v < v_min + CONTACT_BAND)
+    across_face = jnp.abs(along) > PARALLEL_FACE
+    side_max = between & across_face & (v > v_max - CONTACT_BAND)
+    side_min = between & across_face & (v < v_min + CONTACT_BAND)
     facing_max = (along * side_max).sum() / jnp.maximum(side_max.sum(), 1)
     facing_min = -(along * side_min).sum() / jnp.maximum(side_min.sum(), 1)
     antipodal = jnp.minimum(facing_max, facing_min)
-    pads = (object_valid & (jnp.abs(u) < PAD_HALF_WIDTH + 0.003) & (t < PAD_HALF_LENGTH + 0.01)
+    pads = (object_valid & (jnp.abs(u) < PAD_HALF_WIDTH + 0.003) & (t < PAD_HALF_LENGTH + TIP_CLEARANCE)
             & (t > -PREGRASP_DISTANCE - PAD_HALF_LENGTH - 0.01)
             & (jnp.abs(v) > PAD_INNER) & (jnp.abs(v) < PAD_OUTER))
     hand = (object_valid & (t < -HAND_BACK) & (t > -HAND_BACK - PREGRASP_DISTANCE - 0.06) & (jnp.abs(u) < HAND_HALF_WIDTH) & (jnp.abs(v) < HAND_HALF_LENGTH))
-    corners = jnp.array([[su * PAD_HALF_WIDTH, sv * PAD_OUTER, PAD_HALF_LENGTH + 0.007]
-                         for su in (-1, 1) for sv in (-1, 1)]
-                        + [[su * HAND_HALF_WIDTH, sv * 0.085, -HAND_BACK - 0.028] for su in (-1, 1) for sv in (-1, 1)])
-    corner_z = centre[2] + corners @ jnp.stack([across[2], closing[2], approach[2]])
-    above_table = corner_z.min() > TABLE_HEIGHT + TABLE_CLEARANCE
+    above_table = _pad_corners(centre, approach, closing, across).min() > TABLE_HEIGHT + TABLE_CLEARANCE
 
     pu, pv, pt = local(part_points)
     pv = pv - shift
