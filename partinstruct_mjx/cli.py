@@ -38,6 +38,9 @@ def main(argv: list[str] | None = None) -> int:
     from partinstruct_mjx.obs.render_cli import add_render_parser
 
     add_render_parser(commands)
+    from partinstruct_mjx.eval.cli import add_eval_parser
+
+    add_eval_parser(commands)
 
     bench = commands.add_parser(
         "bench", help="measure speed (CPU backend, conversion) and write docs/benchmarks.md",

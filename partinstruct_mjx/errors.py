@@ -19,3 +19,7 @@ class TaskError(PartInstructError):
 
 class DataError(PartInstructError):
     """Demonstration data is malformed, duplicated, or inconsistent with the run directory it is written to."""
+
+
+class EvalError(PartInstructError):
+    """An evaluation was asked for with bad settings, a missing policy, or a run directory made with others."""

@@ -97,9 +97,7 @@ def synthesize(episodes: list[Episode], out_dir: str | os.PathLike, batch_size: 
     writer = DemoWriter(out_dir, env_args(backend, sampler, seed))
     done = writer.finished_ids()
     todo = [e for e in episodes if e.ep_id not in done]
-    groups: dict[tuple[str, str], list[Episode]] = {}
-    for episode in sorted(todo, key=lambda e: (category_slug(e.obj_class), e.obj_id, e.ep_id)):
-        groups.setdefault((category_slug(episode.obj_class), episode.obj_id), []).append(episode)
+    groups = object_groups(todo)
 
     timing = Timing()
     start = time.perf_counter()
@@ -109,9 +107,7 @@ def synthesize(episodes: list[Episode], out_dir: str | os.PathLike, batch_size: 
         for key, mine in groups.items():
             workers: dict[int, _ObjectWorker] = {}
             try:
-                for first in range(0, len(mine), batch_size):
-                    batch = mine[first:first + batch_size]
-                    size = _bucket(len(batch), batch_size)
+                for batch, size in object_batches(mine, batch_size):
                     if size not in workers:
                         workers[size] = _ObjectWorker(objects[key], size, backend, num_threads, timing)
                     demos, failures, record = workers[size].run(batch, jax.random.PRNGKey(seed), sampler,
@@ -148,6 +144,25 @@ def _bucket(count: int, batch_size: int) -> int:
     """Env batch size for `count` episodes: the next power of two, at most `batch_size`. Every new batch size (and
     object category) compiles the oracle and env step again, so sizes are few; the rest is padding."""
     return min(batch_size, 1 << (count - 1).bit_length())
+
+
+def object_groups(episodes: list[Episode]) -> dict[tuple[str, str], list[Episode]]:
+    """Episodes per object (category, obj_id), in (category, obj_id, ep_id) order: one env serves each group."""
+    groups: dict[tuple[str, str], list[Episode]] = {}
+    for episode in sorted(episodes, key=lambda e: (category_slug(e.obj_class), e.obj_id, e.ep_id)):
+        groups.setdefault((category_slug(episode.obj_class), episode.obj_id), []).append(episode)
+    return groups
+
+
+def object_batches(episodes: list[Episode], batch_size: int) -> list[tuple[list[Episode], int]]:
+    """One object's episodes in batches of at most `batch_size`, each with the env size it runs in (`_bucket`)."""
+    batches = [episodes[first:first + batch_size] for first in range(0, len(episodes), batch_size)]
+    return [(batch, _bucket(len(batch), batch_size)) for batch in batches]
+
+
+def pad_batch(batch: list, size: int) -> list:
+    """`batch` repeated cyclically to `size` entries, so a short batch fills an env of that size."""
+    return [batch[i % len(batch)] for i in range(size)]
 
 
 def _object_paths(episodes: list[Episode], root: Path) -> dict[tuple[str, str], Path]:
@@ -189,7 +204,7 @@ class _ObjectWorker:
         from partinstruct_mjx.oracle.rollout import run_oracle
 
         rollout_key, cloud_key = jax.random.split(key)
-        padded = [batch[i % len(batch)] for i in range(self.batch_size)]
+        padded = pad_batch(batch, self.batch_size)
         tick = time.perf_counter()
         rollout = run_oracle(self.env, padded, rollout_key, record=True)
         rollout_s = time.perf_counter() - tick

@@ -9,6 +9,8 @@ which the driver calls only on the steps where some environment asks for it. Bud
 
 from __future__ import annotations
 
+from functools import partial
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -221,13 +223,18 @@ def _reachable(kinematics, q, position, quat, axis):
 # --- acting -------------------------------------------------------------------------------------------------
 
 
-def act(oracle: OracleState, data, skill_rows: progress.GoalRows, geometry: PartGeometry
-        ) -> tuple[OracleState, jnp.ndarray]:
+def act(oracle: OracleState, data, skill_rows: progress.GoalRows, geometry: PartGeometry,
+        task: progress.TaskState | None = None) -> tuple[OracleState, jnp.ndarray]:
     """One step of every environment's machine: the new state and the (B, 7) Euler pose actions.
 
-    skill_rows: the episodes' skill effects, `TaskState.skills` (B, MAX_SKILLS, MAX_GOALS).
+    skill_rows: the episodes' skill effects, `TaskState.skills` (B, MAX_SKILLS, MAX_GOALS). task: an env in skill
+    mode passes its progress; the machine then follows the env's skill chain (a skill ends when the env counts it,
+    judged from the env's p0 and spatial parts) instead of its own tolerances.
     """
-    oracle = jax.vmap(_act_one, in_axes=(0, 0, None, 0))(oracle, data, geometry, skill_rows)
+    follow = (oracle.skill, oracle.p0, oracle.masks) if task is None else (task.skill_index, task.skill_p0,
+                                                                           task.masks)
+    oracle = jax.vmap(partial(_act_one, follow_env=task is not None), in_axes=(0, 0, None, 0, 0))(
+        oracle, data, geometry, skill_rows, follow)
     euler = quat_to_euler_xyz(oracle.cmd_quat)
     return oracle, jnp.concatenate([oracle.cmd_pos, euler, oracle.finger[:, None]], axis=1)
 
@@ -249,7 +256,10 @@ def _skill_effects(o: OracleState, data, geo: PartGeometry, rows) -> jnp.ndarray
     return progress.evaluate(data, geo, o.masks, rows, o.p0).all()
 
 
-def _act_one(o: OracleState, data, geo: PartGeometry, rows):
+def _act_one(o: OracleState, data, geo: PartGeometry, rows, env, follow_env: bool):
+    env_skill, env_p0, env_masks = env
+    if follow_env:
+        o = o.replace(p0=env_p0, masks=env_masks)
     index = jnp.clip(o.skill, 0, progress.MAX_SKILLS - 1)
     kind = o.kind[index]
     running = (o.skill != DONE) & ~o.failed
@@ -326,6 +336,8 @@ def _act_one(o: OracleState, data, geo: PartGeometry, rows):
                                                                     panda.FINGER_CLOSED], o.finger)
     done = jnp.select([kind <= TOUCH, kind == MOVE, kind == ROTATE], [reach_done, move_done, rotate_done],
                       release_done)
+    if follow_env:
+        done = env_skill > o.skill
     next_stage = jnp.select([kind <= TOUCH, kind == RELEASE], [reach_stage, jnp.minimum(stage + release_next, 2)],
                             stage)
     # Release starts from the pose it has now: remember it as the retreat's reference.

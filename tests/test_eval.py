@@ -1,0 +1,243 @@
+"""`partinstruct eval`: a real oracle evaluation, results.json schema, aggregation and standard errors, resume,
+the policy and planner interfaces, errors."""
+
+import json
+import math
+import warnings
+
+import imageio_ffmpeg
+import jax
+import numpy as np
+import pytest
+
+from partinstruct_mjx.cli import main
+from partinstruct_mjx.data.synthesis import select_episodes
+from partinstruct_mjx.env import EnvConfig, PartInstructEnv, hold_action
+from partinstruct_mjx.eval import EvalConfig, EvalError, aggregate, evaluate
+from partinstruct_mjx.eval.metrics import mean_se, percent, results_markdown, success_table
+from partinstruct_mjx.eval.planner import OraclePlanner
+from partinstruct_mjx.eval.runner import select_eval_episodes
+from partinstruct_mjx.paths import assets_root
+from partinstruct_mjx.tasks.episodes import write_metadata
+
+MAX_STEPS = 60
+RECORD_FIELDS = {"split": str, "category": str, "obj_id": str, "ep_id": int, "task_type": int, "success": bool,
+                 "completion": float, "steps": int, "step_limit": int, "stopped_skill": (str, type(None)),
+                 "skills": list, "skill_success": list, "target_parts": list, "task_instruction": str,
+                 "video": (str, type(None))}
+
+
+@pytest.fixture(scope="module")
+def metadata(tmp_path_factory):
+    """A grasp and a touch test1 episode of one mug (one object and batch size: one compile)."""
+    episodes = select_episodes("test1", 6, seed=0, categories=["mug"])
+    chosen = [e for e in episodes if e.obj_id == episodes[0].obj_id][:2]
+    assert [e.task_type for e in chosen] == [1, 2]
+    path = tmp_path_factory.mktemp("episodes") / "mug.json"
+    write_metadata(chosen, path)
+    return path
+
+
+def run(metadata, out, *extra):
+    return main(["eval", "--policy", "oracle", "--metadata", str(metadata), "--splits", "test1", "--batch-size", "2",
+                 "--max-steps", str(MAX_STEPS), "--out", str(out), "--quiet", *extra])
+
+
+@pytest.fixture(scope="module")
+def run_dir(metadata, tmp_path_factory):
+    out = tmp_path_factory.mktemp("eval") / "oracle"
+    assert run(metadata, out, "--videos", "1") == 0
+    return out
+
+
+def test_oracle_evaluation_writes_results_and_a_video(run_dir):
+    results = json.loads((run_dir / "results.json").read_text())
+    assert results["complete"] is True and results["schema_version"] == 1
+    assert {"config", "identity", "resolved", "run", "provenance", "summary", "episodes", "label"} <= set(results)
+    assert results["provenance"]["git_sha"] and "jax" in results["provenance"]["versions"]
+    assert results["config"]["policy"] == "oracle" and results["config"]["mode"] == "skill"
+    assert results["resolved"]["step_limits"] == {"test1": MAX_STEPS}
+    assert results["resolved"]["policy_class"] == "OraclePolicy"
+    episodes = results["episodes"]
+    assert len(episodes) == 2 and results["run"]["episodes_run"] == 2
+    for record in episodes:
+        for field, kind in RECORD_FIELDS.items():
+            assert isinstance(record[field], kind), field
+        assert record["split"] == "test1" and record["category"] == "mug"
+        assert len(record["skill_success"]) == len(record["skills"]) == 1
+        assert 1 <= record["steps"] <= MAX_STEPS and record["step_limit"] == MAX_STEPS
+        # Skill mode: success is the whole chain completed, and completion the share of its skills.
+        assert record["success"] == all(record["skill_success"]) == (record["stopped_skill"] is None)
+        assert record["completion"] == pytest.approx(np.mean(record["skill_success"]))
+        assert record["success"] or record["steps"] == MAX_STEPS
+        assert record["target_parts"]
+    first = episodes[0]
+    assert first["video"] and episodes[1]["video"] is None
+    frames = _frames(run_dir / first["video"])
+    assert len(frames) == first["steps"] + 1, "one frame at reset and one per step until the episode ended"
+    assert np.abs(frames[-1].astype(int) - frames[0]).mean() > 1.0, "the arm does not move in the video"
+    report = (run_dir / "results.md").read_text()
+    assert "| Policy | Test 1 (OS) | All |" in report and "## Per skill" in report
+
+
+def _frames(path) -> list[np.ndarray]:
+    with warnings.catch_warnings():  # ffmpeg is fork+exec'd, which JAX's fork warning does not concern
+        warnings.filterwarnings("ignore", r"os\.fork\(\) was called", RuntimeWarning)
+        reader = imageio_ffmpeg.read_frames(str(path))
+        width, height = next(reader)["size"]
+        return [np.frombuffer(frame, np.uint8).reshape(height, width, 3) for frame in reader]
+
+
+def test_aggregates_recompute_from_the_stored_records(run_dir):
+    results = json.loads((run_dir / "results.json").read_text())
+    records = results["episodes"]
+    assert aggregate(records, ["test1"]) == results["summary"]
+    summary = results["summary"]
+    successes = sum(r["success"] for r in records)
+    assert summary["overall"]["successes"] == summary["per_split"]["test1"]["successes"] == successes
+    p = successes / 2
+    assert summary["overall"]["success_se"] == pytest.approx(math.sqrt(p * (1 - p) / 2))
+    for record in records:
+        skill = summary["per_skill"][record["skills"][0]]
+        assert skill["reached"] >= 1 and skill["completed"] <= skill["reached"]
+        assert summary["per_task_type"][str(record["task_type"])]["episodes"] == 1
+        assert summary["per_part"][record["target_parts"][0]]["episodes"] >= 1
+
+
+def test_standard_errors_match_the_papers_error_bars(run_dir):
+    """DP3 on Test 1 in the paper: 23.18 +- 2.8 from 51 of 220 rollouts; here on records of the real run's schema."""
+    template = json.loads((run_dir / "results.json").read_text())["episodes"][0]
+    records = [template | {"ep_id": i, "success": i < 51, "completion": 1.0 if i < 51 else 0.5} for i in range(220)]
+    records += [template | {"ep_id": 1000 + i, "split": "test5", "success": i < 2, "completion": 0.0}
+                for i in range(30)]
+    summary = aggregate(records, ["test1", "test5"])
+    test1 = summary["per_split"]["test1"]
+    assert test1["success_rate"] == pytest.approx(51 / 220)
+    assert percent(test1["success_rate"], test1["success_se"]) == "23.18 ± 2.8"
+    assert test1["completion_rate"] == pytest.approx((51 + 0.5 * 169) / 220)
+    assert percent(summary["per_split"]["test5"]["success_rate"], summary["per_split"]["test5"]["success_se"]) \
+        == "6.67 ± 4.6"
+    # All pools the rollouts; the mean of the split rates is reported beside it.
+    assert summary["overall"]["success_rate"] == pytest.approx(53 / 250)
+    assert summary["mean_over_splits"]["success_rate"] == pytest.approx((51 / 220 + 2 / 30) / 2)
+    assert mean_se([]) == (None, None) and mean_se([1, 1]) == (1.0, 0.0)
+    table = success_table(summary, ["test1", "test5"], "DP3")
+    assert "| DP3 | 23.18 ± 2.8 | 6.67 ± 4.6 | 21.20 ± 2.6 |" in table
+
+
+def test_per_skill_counts_only_the_skills_an_episode_reached(run_dir):
+    template = json.loads((run_dir / "results.json").read_text())["episodes"][0]
+    chain = ["grasp_obj", "move_gripper", "release_obj"]
+    records = [template | {"ep_id": 0, "skills": chain, "skill_success": [True, False, False], "success": False,
+                           "target_parts": ["handle", ""]},
+               template | {"ep_id": 1, "skills": chain, "skill_success": [True, True, True], "success": True,
+                           "target_parts": ["top"]}]
+    summary = aggregate(records)
+    assert summary["per_skill"]["grasp_obj"] == {"reached": 2, "completed": 2, "success_rate": 1.0}
+    assert summary["per_skill"]["move_gripper"] == {"reached": 2, "completed": 1, "success_rate": 0.5}
+    assert summary["per_skill"]["release_obj"] == {"reached": 1, "completed": 1, "success_rate": 1.0}
+    assert set(summary["per_part"]) == {"handle", "top", "(whole object)"}
+    assert summary["per_part"]["top"]["success_rate"] == 1.0
+    report = results_markdown({"summary": summary, "config": EvalConfig(splits=("test1",)).identity(),
+                               "label": "x", "complete": True, "resolved": {"step_limits": {"test1": 250}},
+                               "provenance": {"date": "d", "git_sha": "s", "machine": "m"}})
+    assert "| move_gripper | 2 | 1 | 50.00 |" in report
+
+
+def test_rerun_resumes_and_other_settings_are_refused(metadata, run_dir, capsys):
+    before = json.loads((run_dir / "results.json").read_text())["episodes"]
+    capsys.readouterr()
+    assert run(metadata, run_dir) == 0
+    out = capsys.readouterr().out
+    assert "0 episodes run" in out and "2 resumed" in out and "| oracle (skill mode) |" in out
+    assert json.loads((run_dir / "results.json").read_text())["episodes"] == before
+    assert run(metadata, run_dir, "--seed", "3") == 2
+    assert "other settings (seed: 0 there, 3 now)" in capsys.readouterr().err
+
+
+def test_a_custom_policy_gets_the_skill_instructions(metadata, tmp_path):
+    """The Python API with a policy object: a policy that holds still gets each scene's current skill instruction."""
+
+    class Hold:
+        def reset(self, env, state, key):
+            self.seen = []
+
+        def act(self, env, state, instructions, key):
+            self.seen.append(list(instructions))
+            return hold_action(state.obs["tcp_pose"])
+
+    policy = Hold()
+    config = EvalConfig(policy="hold", splits=("test1",), metadata=str(metadata), episodes_per_split=None,
+                        batch_size=2, max_steps=4)
+    results = evaluate(config, tmp_path / "hold", policy=policy, progress=False)
+    episodes = results["episodes"]
+    assert [r["success"] for r in episodes] == [False, False] and [r["steps"] for r in episodes] == [4, 4]
+    assert [r["stopped_skill"] for r in episodes] == ["grasp_obj", "touch_obj"]
+    assert len(policy.seen) == 4
+    assert policy.seen[0][1].lower().startswith("touch")
+    assert results["label"] == "hold (skill mode)"
+
+
+def test_task_mode_with_the_oracle_planner(metadata, tmp_path):
+    """Task mode judges the task's goals; the oracle planner and the per-skill records follow the skill chain."""
+    out = tmp_path / "task"
+    assert run(metadata, out, "--mode", "task", "--planner", "oracle", "--planner-every", "5") == 0
+    results = json.loads((out / "results.json").read_text())
+    assert results["config"]["planner"] == "oracle" and results["config"]["planner_every"] == 5
+    assert results["resolved"]["env"]["skill_mode"] is False
+    for record in results["episodes"]:
+        assert record["success"] or record["steps"] == MAX_STEPS
+        # Types 1 and 2: the task's goal (GRASPING / TOUCHING the part, on the table) includes the skill's effect.
+        assert not record["success"] or record["skill_success"] == [True]
+
+
+def test_oracle_planner_starts_at_the_first_skill(metadata):
+    episodes = select_eval_episodes(EvalConfig(splits=("test1",), metadata=str(metadata), episodes_per_split=None))
+    xml = assets_root() / "objects" / episodes[0].obj_class / episodes[0].obj_id / "object.xml"
+    with PartInstructEnv(xml, 2, EnvConfig()) as env:
+        state = env.reset(jax.random.PRNGKey(0), episodes)
+        assert OraclePlanner().instructions(env, state, 0) == [e.skill_instructions[0] for e in episodes]
+        assert OraclePlanner().instructions(env, state, 0) == env.instructions(state)
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--splits", "test9"], "unknown split 'test9'"),
+    (["--policy", "/nonexistent/run"], "policy run directory not found: /nonexistent/run"),
+    (["--planner-every", "4"], "--planner-every needs --planner"),
+    (["--batch-size", "0"], "batch_size must be >= 1"),
+    (["--episodes-per-split", "0"], "episodes_per_split must be >= 1"),
+])
+def test_bad_arguments_are_named(tmp_path, capsys, argv, message):
+    args = ["eval", "--policy", "oracle", "--out", str(tmp_path / "out"), "--quiet", *argv]
+    assert main(args) == 2
+    assert message in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_file_as_policy_or_out_is_refused(tmp_path, capsys):
+    file = tmp_path / "file.txt"
+    file.write_text("x")
+    assert main(["eval", "--policy", str(file), "--out", str(tmp_path / "out"), "--quiet"]) == 2
+    assert "is not a directory" in capsys.readouterr().err
+    assert main(["eval", "--policy", "oracle", "--out", str(file), "--quiet"]) == 2
+    assert "is a file" in capsys.readouterr().err
+    with pytest.raises(EvalError, match="unknown mode"):
+        EvalConfig(mode="both")
+
+
+def test_help_explains_policies_outputs_and_resume(capsys):
+    with pytest.raises(SystemExit):
+        main(["eval", "--help"])
+    text = capsys.readouterr().out
+    for phrase in ("--planner-every", "results.json", "resume", "load_policy", "test4"):
+        assert phrase in text
+
+
+@pytest.mark.slow
+def test_mjx_backend_runs_the_same_evaluation(metadata, tmp_path):
+    out = tmp_path / "mjx"
+    assert main(["eval", "--policy", "oracle", "--metadata", str(metadata), "--splits", "test1", "--batch-size", "2",
+                 "--max-steps", "10", "--backend", "mjx", "--out", str(out), "--quiet"]) == 0
+    results = json.loads((out / "results.json").read_text())
+    assert results["config"]["backend"] == "mjx" and len(results["episodes"]) == 2
+    assert all(r["steps"] <= 10 for r in results["episodes"])
