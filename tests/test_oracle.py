@@ -100,3 +100,28 @@ def test_oracle_touches_and_records(episodes):
     assert (rollout.length <= steps).all() and (rollout.failed_skill == -1).all()
     # The touch ends with closed fingers near the part.
     assert (rollout.actions[np.arange(len(batch)), rollout.length - 1, 6] == 0.0).all()
+
+
+def test_flat_knife_handle_is_pinched_above_the_table(episodes):
+    episode = next(e for e in episodes if e.obj_class == "knife" and e.chain[0].name == "grasp_obj")
+    with _env(episode) as env:
+        state = env.reset(jax.random.PRNGKey(0), [episode])
+        points, normals, valid, part_points, part_normals, part_valid = _clouds(env, state, episode.chain[0].part)
+        grasps = candidates.grasp_candidates(points, normals, valid, part_points, part_normals, part_valid,
+                                             jax.random.PRNGKey(1))
+    good = np.isfinite(np.asarray(grasps["score"]))
+    assert good.sum() >= 1
+    # Valid grasps come from above, and the open pads' tips stay above the table.
+    approach = np.asarray(grasps["approach"])[good]
+    assert (approach[:, 2] < -candidates.MIN_APPROACH_COMPONENT).all()
+    tips = np.asarray(grasps["centre"])[good, 2] + candidates.PAD_HALF_LENGTH * approach[:, 2]
+    assert (tips > candidates.TABLE_HEIGHT).all()
+
+
+def test_oracle_follows_a_skill_mode_env_through_chained_moves(episodes):
+    episode = next(e for e in episodes if e.obj_id == "bottle_005" and e.task_type == 7)
+    root = assets_root()
+    xml = root / "objects" / episode.obj_class / episode.obj_id / "object.xml"
+    with PartInstructEnv(xml, 1, EnvConfig(skill_mode=True)) as env:
+        rollout = run_oracle(env, [episode], jax.random.PRNGKey(0), record=False)
+    assert rollout.success.all()

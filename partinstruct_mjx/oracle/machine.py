@@ -259,7 +259,10 @@ def _skill_effects(o: OracleState, data, geo: PartGeometry, rows) -> jnp.ndarray
 def _act_one(o: OracleState, data, geo: PartGeometry, rows, env, follow_env: bool):
     env_skill, env_p0, env_masks = env
     if follow_env:
-        o = o.replace(p0=env_p0, masks=env_masks)
+        # While the machine is on the env's skill it judges it as the env does; once the env has counted a skill the
+        # machine still finishes it (see below) with the p0 it had.
+        synced = env_skill == o.skill
+        o = o.replace(p0=jnp.where(synced, env_p0, o.p0), masks=jnp.where(synced, env_masks, o.masks))
     index = jnp.clip(o.skill, 0, progress.MAX_SKILLS - 1)
     kind = o.kind[index]
     running = (o.skill != DONE) & ~o.failed
@@ -337,7 +340,9 @@ def _act_one(o: OracleState, data, geo: PartGeometry, rows, env, follow_env: boo
     done = jnp.select([kind <= TOUCH, kind == MOVE, kind == ROTATE], [reach_done, move_done, rotate_done],
                       release_done)
     if follow_env:
-        done = env_skill > o.skill
+        # Moves run their full 0.12 m (a carry stopped early swings the object off the fingers; the next move is
+        # measured from the env's p0 anyway); other skills end once the env counts them.
+        done = done | ((env_skill > o.skill) & (kind != MOVE))
     next_stage = jnp.select([kind <= TOUCH, kind == RELEASE], [reach_stage, jnp.minimum(stage + release_next, 2)],
                             stage)
     # Release starts from the pose it has now: remember it as the retreat's reference.
