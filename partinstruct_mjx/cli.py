@@ -38,6 +38,9 @@ def main(argv: list[str] | None = None) -> int:
     from partinstruct_mjx.obs.render_cli import add_render_parser
 
     add_render_parser(commands)
+    from partinstruct_mjx.train.cli import add_train_parser
+
+    add_train_parser(commands)
     from partinstruct_mjx.eval.cli import add_eval_parser
 
     add_eval_parser(commands)
