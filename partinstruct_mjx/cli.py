@@ -54,18 +54,27 @@ def main(argv: list[str] | None = None) -> int:
                     "clouds/s on the current device (mug_000) and the OpenGL depth path for comparison. pybullet: our CPU env "
                     "vs PyBullet doing the same work the original's way, in one run. demos: successful oracle "
                     "demos/hour, episodes/s, env steps/s and the time split of `partinstruct demos` on --episodes "
-                    "train episodes (one cold run for the compile overhead, then --repeats warm runs; default 1).")
+                    "train episodes (one cold run for the compile overhead, then --repeats warm runs; default 1). "
+                    "mjx: MJX env steps/s of the jitted, vmapped BraxPartInstructEnv step (IK, physics, predicates) "
+                    "on the current JAX device per --object and batch size, compile time separate, collision-budget "
+                    "variants of the object with the most hulls, and impl='warp' when installed (needs brax).")
     bench.add_argument("suite", nargs="?", default="cpu_backend",
-                       choices=["cpu_backend", "convert", "ik", "pointcloud", "pybullet", "demos"],
+                       choices=["cpu_backend", "convert", "ik", "pointcloud", "pybullet", "demos", "mjx"],
                        help="what to measure (default cpu_backend)")
     bench.add_argument("--sources", type=Path, nargs="+", default=[Path("../shared/partnet_samples")],
                        help="convert suite: PartNet-Mobility folders (default ../shared/partnet_samples)")
     bench.add_argument("--batch-sizes", type=int, nargs="+", default=None,
-                       help="default: 1 2 8 32 (cpu_backend), 1 64 1024 16384 (ik), 1 16 256 (pointcloud), 16 (demos)")
-    bench.add_argument("--steps", type=int, default=200, help="control steps per timed run (default 200)")
+                       help="default: 1 2 8 32 (cpu_backend), 1 64 1024 16384 (ik), 1 16 256 (pointcloud), 16 (demos), "
+                            "256 1024 4096 16384 (mjx)")
+    bench.add_argument("--object", type=Path, action="append", default=None,
+                       help="mjx suite: object MJCF, repeatable (default: the built-in mug_000)")
+    bench.add_argument("--steps", type=int, default=None,
+                       help="control steps per timed run (default 200; mjx: env steps per jitted call, default 20)")
     bench.add_argument("--repeats", type=int, default=None,
                        help="timed runs per batch size (default 5; 1 for demos, whose runs take minutes)")
     bench.add_argument("--episodes", type=int, default=64, help="demos suite: train episodes per run (default 64)")
+    bench.add_argument("--backend", choices=["mujoco", "mjx"], default="mujoco",
+                       help="demos suite: physics backend (default mujoco; mjx on a GPU)")
     bench.add_argument("--threads", type=int, default=None, help="worker threads/processes (default: all cores)")
     bench.add_argument("--output", type=Path, default=DEFAULT_BENCH_OUTPUT,
                        help=f"markdown file to update (default {DEFAULT_BENCH_OUTPUT}); '-' prints only")
@@ -170,12 +179,15 @@ def _simulate(args) -> int:
 
 
 def _bench(args) -> int:
-    from partinstruct_mjx.bench.report import provenance_lines, write_section
+    from partinstruct_mjx.bench.report import env_row, write_report
     from partinstruct_mjx.provenance import provenance
 
     command = " ".join(["partinstruct", "bench", *sys.argv[2:]]) if sys.argv[1:2] == ["bench"] else "partinstruct bench"
     if args.repeats is None:
         args.repeats = 1 if args.suite == "demos" else 5
+    if args.steps is None:
+        args.steps = 20 if args.suite == "mjx" else 200
+    info, data = provenance(), None
     if args.suite == "convert":
         from partinstruct_mjx.assets.convert import ConvertConfig
         from partinstruct_mjx.bench import conversion
@@ -216,13 +228,26 @@ def _bench(args) -> int:
         table = pybullet_baseline.markdown(baseline, ours, "mug_000")
         print(table)
         title, heading = "pybullet", "CPU env vs PyBullet (the original's engine and method)"
+        data = [env_row("PyBullet, the original's way (CPU, 1 thread)", 1, baseline.env_steps_per_s, baseline.spread,
+                        engine="pybullet", threads=1)]
+        data += [env_row(f"PartInstructEnv, mujoco backend (CPU, {threads} physics thread{'s' * (threads > 1)})",
+                         batch, r.env_steps_per_s, r.spread, engine="partinstruct-mjx", threads=threads)
+                 for (batch, threads), r in ours.items()]
     elif args.suite == "demos":
-        title, heading, table = "demos", "Demonstration synthesis", _bench_demos(args)
+        import jax
+
+        gpu = jax.default_backend() != "cpu"
+        device = jax.devices()[0].device_kind
+        title = f"demos_{device.lower().replace(' ', '_')}" if gpu else "demos"
+        heading = f"Demonstration synthesis ({device})" if gpu else "Demonstration synthesis"
+        table = _bench_demos(args)
+    elif args.suite == "mjx":
+        title, heading, table, data = _bench_mjx(args, info, command)
     else:
-        title, heading, table = "cpu_backend", "CPU backend (C MuJoCo, thread pool)", _bench_cpu_backend(args)
-    body = f"## {heading}\n\n" + provenance_lines(provenance(), command) + "\n" + table
+        title, heading = "cpu_backend", "CPU backend (C MuJoCo, thread pool)"
+        table, data = _bench_cpu_backend(args)
     if str(args.output) != "-":
-        write_section(args.output, title, body)
+        write_report(args.output, title, heading, table, info, command, data)
         print(f"wrote {args.output}")
     return 0
 
@@ -237,7 +262,7 @@ def _bench_demos(args) -> str:
     episodes = demos.bench_episodes(args.episodes)
     results = []
     for batch in args.batch_sizes or [16]:
-        result = demos.measure(episodes, batch, args.repeats, args.threads)
+        result = demos.measure(episodes, batch, args.repeats, args.threads, backend=args.backend)
         results.append(result)
         print(f"batch {batch:>3}: {result.demos_per_hour:>9,.0f} demos/hour, {result.episodes_per_s:.2f} episodes/s, "
               f"{result.env_steps_per_s:,.0f} env steps/s, oracle success {result.successes}/{result.episodes}, "
@@ -248,8 +273,31 @@ def _bench_demos(args) -> str:
     return table
 
 
-def _bench_cpu_backend(args) -> str:
+def _bench_mjx(args, info: dict, command: str) -> tuple[str, str, str, list[dict]]:
+    """Run the mjx suite, rewriting its section and data file after every row (an interrupted run keeps them)."""
+    from partinstruct_mjx import paths
+    from partinstruct_mjx.bench import mjx_env
+    from partinstruct_mjx.bench.report import write_report
+
+    device = mjx_env.device_name()
+    title, heading = f"mjx_{device.lower().replace(' ', '_')}", f"MJX env steps (impl jax, {device})"
+
+    def write(results):
+        if str(args.output) != "-":
+            write_report(args.output, title, heading, mjx_env.markdown(results), info, command,
+                         mjx_env.data_rows(results))
+
+    objects = args.object or [paths.assets_root() / "objects/mug/mug_000/object.xml"]
+    results = mjx_env.run(objects, tuple(args.batch_sizes or mjx_env.DEFAULT_BATCH_SIZES), args.steps, args.repeats,
+                          on_row=write)
+    table = mjx_env.markdown(results)
+    print(table)
+    return title, heading, table, mjx_env.data_rows(results)
+
+
+def _bench_cpu_backend(args) -> tuple[str, list[dict]]:
     from partinstruct_mjx.bench import cpu_backend
+    from partinstruct_mjx.bench.report import env_row
     from partinstruct_mjx.sim.scene import build_scene
 
     scene = build_scene()
@@ -258,7 +306,9 @@ def _bench_cpu_backend(args) -> str:
         result = cpu_backend.measure(scene, batch, args.steps, args.repeats, args.threads)
         results.append(result)
         print(f"batch {batch:>5}: {result.env_steps_per_s:>10,.0f} env steps/s  ({result.threads} threads)")
-    return cpu_backend.markdown(results, scene)
+    rows = [env_row("mujoco backend (CPU threads): physics + state only, no IK or predicates", r.batch_size,
+                    r.env_steps_per_s, r.spread, threads=r.threads) for r in results]
+    return cpu_backend.markdown(results, scene), rows
 
 
 if __name__ == "__main__":

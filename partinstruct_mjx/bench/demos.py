@@ -54,6 +54,7 @@ class DemosResult:
     """The warm runs' records."""
     successes: int
     threads: int
+    backend: str = "mujoco"
 
     def _median(self, value) -> float:
         return float(np.median([value(run) for run in self.warm]))
@@ -101,7 +102,7 @@ class DemosResult:
 
 
 def measure(episodes: list[Episode], batch_size: int, repeats: int, threads: int | None = None,
-            sampler: str = "stride") -> DemosResult:
+            sampler: str = "stride", backend: str = "mujoco") -> DemosResult:
     """One cold and `repeats` warm synthesis runs of `episodes` into temporary directories."""
     import jax
 
@@ -112,10 +113,15 @@ def measure(episodes: list[Episode], batch_size: int, repeats: int, threads: int
         jax.clear_caches()
         for index in range(1 + repeats):
             summary = synthesize(episodes, Path(tmp) / f"run{index}", batch_size=batch_size, sampler=sampler,
-                                 progress=False, num_threads=threads)
+                                 backend=backend, progress=False, num_threads=threads)
             runs.append(summary["run"])
     return DemosResult(batch_size, len(episodes), len({(e.obj_class, e.obj_id) for e in episodes}), runs[0], runs[1:],
-                       runs[0]["successes"], threads or os.cpu_count() or 1)
+                       runs[0]["successes"], threads or os.cpu_count() or 1, backend)
+
+
+def _backend(result: DemosResult) -> str:
+    return ("`mjx` backend (physics on the JAX device)" if result.backend == "mjx"
+            else f"`mujoco` backend with {result.threads} threads")
 
 
 def markdown(results: list[DemosResult], episodes: list[Episode], device: str, cache: str) -> str:
@@ -134,7 +140,7 @@ def markdown(results: list[DemosResult], episodes: list[Episode], device: str, c
     repeats = len(results[0].warm) if results else 0
     return (
         f"`partinstruct demos` on {len(episodes)} train episodes (task types {types[0]}-{types[-1]}, interleaved) on "
-        f"{', '.join(objects)}, seed 0, stride-sampled clouds, `mujoco` backend with {results[0].threads} threads, "
+        f"{', '.join(objects)}, seed 0, stride-sampled clouds, {_backend(results[0])}, "
         f"JAX on {device}; JAX persistent compilation cache: {cache}. Few objects keep batches full, as in a long "
         f"run; a run spread over every training object compiles once per category and batch size. Rates are "
         f"medians of {repeats} warm run(s) (one by default: a run takes minutes); 'compile' is the cold run's wall "
