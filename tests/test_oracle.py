@@ -9,7 +9,7 @@ from partinstruct_mjx.assets.catalog import load_catalog
 from partinstruct_mjx.control.rotations import quat_rotate
 from partinstruct_mjx.env import EnvConfig, PartInstructEnv
 from partinstruct_mjx.oracle import candidates, machine
-from partinstruct_mjx.oracle.rollout import run_oracle
+from partinstruct_mjx.oracle.rollout import OraclePolicy, run_oracle
 from partinstruct_mjx.paths import assets_root
 from partinstruct_mjx.tasks import predicates
 from partinstruct_mjx.tasks.episodes import generate_episodes
@@ -119,9 +119,42 @@ def test_flat_knife_handle_is_pinched_above_the_table(episodes):
 
 
 def test_oracle_follows_a_skill_mode_env_through_chained_moves(episodes):
+    """Grasp, lift, move front in a skill-mode env: the lift runs its full 0.12 m although the env counts it at 0.07,
+    and the next move is then judged from the env's p0."""
     episode = next(e for e in episodes if e.obj_id == "bottle_005" and e.task_type == 7)
     root = assets_root()
     xml = root / "objects" / episode.obj_class / episode.obj_id / "object.xml"
     with PartInstructEnv(xml, 1, EnvConfig(skill_mode=True)) as env:
-        rollout = run_oracle(env, [episode], jax.random.PRNGKey(0), record=False)
-    assert rollout.success.all()
+        state = env.reset(jax.random.PRNGKey(0), [episode])
+        start_z = float(state.data.object_pos[0, 2])
+        policy = OraclePolicy()
+        policy.reset(env, state, jax.random.PRNGKey(0))
+        env_counted_lift = None
+        for _ in range(160):
+            state = env.step(state, policy.act(env, state))
+            if env_counted_lift is None and int(state.task.skill_index[0]) == 2:
+                env_counted_lift = float(state.data.object_pos[0, 2]) - start_z
+            if int(policy.state.skill[0]) == 2:
+                break
+        lifted = float(state.data.object_pos[0, 2]) - start_z
+        policy.act(env, state)
+        oracle_p0 = np.asarray(policy.state.p0[0])
+    assert env_counted_lift is not None and env_counted_lift < 0.1
+    assert lifted > 0.11
+    np.testing.assert_allclose(oracle_p0, np.asarray(state.task.skill_p0[0]), atol=1e-6)
+
+
+def test_push_pose_presses_low_on_the_face_opposite_the_push(episodes):
+    episode = next(e for e in episodes if e.obj_class == "bottle" and e.task_type == 4)
+    direction = direction_vector(episode.chain[1].direction).astype(np.float32)
+    with _env(episode) as env:
+        state = env.reset(jax.random.PRNGKey(0), [episode])
+        data = jax.tree_util.tree_map(lambda x: jnp.asarray(x)[0], state.data)
+        pos, quat, _ = machine._push_pose(data, env.geometry, jnp.asarray(direction))
+    tip = np.asarray(pos + predicates.FINGERTIP_OFFSET * quat_rotate(quat, jnp.array([0.0, 0.0, 1.0])))
+    centre = np.asarray(data.object_pos)
+    # The fingertip sits low (a few cm above the table), behind the object as seen along the push, near its axis.
+    assert candidates.TABLE_HEIGHT + machine.PUSH_HEIGHT - 1e-3 < tip[2] < candidates.TABLE_HEIGHT + 0.06
+    assert (tip - centre) @ direction < -0.015
+    lateral = (tip - centre) - ((tip - centre) @ direction) * direction
+    assert np.linalg.norm(lateral[:2]) < 0.02

@@ -21,6 +21,7 @@ from partinstruct_mjx.control.rotations import (axis_angle_to_quat, quat_error, 
                                                 quat_to_euler_xyz)
 from partinstruct_mjx.oracle import candidates
 from partinstruct_mjx.sim import panda
+from partinstruct_mjx.sim.scene import TABLE_HEIGHT
 from partinstruct_mjx.tasks import predicates, progress
 from partinstruct_mjx.tasks.part_geometry import PartGeometry, spatial_masks
 from partinstruct_mjx.tasks.vocabulary import OPPOSITE, UNIT_DISTANCE, direction_vector
@@ -31,7 +32,7 @@ SKILL_KINDS = {"grasp_obj": GRASP, "touch_obj": TOUCH, "move_gripper": MOVE, "ro
 DONE = -1
 """Skill value once the whole chain is executed."""
 
-SKILL_BUDGET = np.array([200, 160, 90, 110, 70])
+SKILL_BUDGET = np.array([200, 160, 150, 110, 70])
 """Steps one skill may take (grasp and touch include their retries), by kind."""
 MAX_ATTEMPTS = 3
 """Grasp/touch candidates tried (in rank order) before the skill fails."""
@@ -57,6 +58,12 @@ RETREAT_UP = 0.10
 """Release: back off along the TCP's z, then up (spec 8.8, the oracle config's 0.1 m)."""
 FINGER_OPENED = 0.035
 LOST_STEPS = 6
+PUSH_TILT = 0.9
+PUSH_HEIGHT = 0.025
+"""Pushes press with the hand tilted down this much (rad), this high (m) above the table at least."""
+PUSH_BACK_OFF = 0.04
+TOUCH_PRESS = 0.01
+"""Metres the fingertip leaves the object before re-approaching it low, and how far past the face it aims."""
 """Steps a carry, push or turn may go on without holding (or touching) the object before the skill fails."""
 
 
@@ -251,6 +258,28 @@ def _toward(cmd_pos, cmd_quat, goal_pos, goal_quat, speed, turn):
     return pos, quat / jnp.linalg.norm(quat)
 
 
+def _push_pose(data, geo: PartGeometry, direction):
+    """TCP pose that puts the fingertip (hand tilted down by PUSH_TILT, facing the push) on the lowest point of the
+    object's face opposite the push, at least PUSH_HEIGHT above the table; and a test whether a TCP pose's fingertip
+    is already that low."""
+    world = predicates.world_clouds(data, geo)
+    points, valid = world[geo.whole], geo.valid[geo.whole]
+    reach = jnp.where(valid, -(points @ direction), -jnp.inf)
+    face = valid & (reach > reach.max() - candidates.FACE_BAND) & (points[:, 2] > TABLE_HEIGHT + PUSH_HEIGHT)
+    # Low, and in line with the object's centre along the push (an off-centre push turns the object away).
+    offset = points - predicates.masked_mean(points, valid)
+    lateral = offset - (offset @ direction)[:, None] * direction
+    cost = points[:, 2] + 2.0 * jnp.linalg.norm(lateral[:, :2], axis=-1)
+    point = points[jnp.argmin(jnp.where(face, cost, jnp.inf))]
+    z_axis = jnp.cos(PUSH_TILT) * direction - jnp.sin(PUSH_TILT) * jnp.array([0.0, 0.0, 1.0])
+    tip = predicates.FINGERTIP_OFFSET
+
+    def low_enough(tcp, quat):
+        return (tcp + tip * quat_rotate(quat, jnp.array([0.0, 0.0, 1.0])))[2] < point[2] + 0.02
+
+    return point - tip * z_axis, candidates.touch_quat(z_axis), low_enough
+
+
 def _skill_effects(o: OracleState, data, geo: PartGeometry, rows) -> jnp.ndarray:
     """The current skill's effects (spec 5.2) hold now, with the oracle's p0 and spatial parts."""
     return progress.evaluate(data, geo, o.masks, rows, o.p0).all()
@@ -303,8 +332,28 @@ def _act_one(o: OracleState, data, geo: PartGeometry, rows, env, follow_env: boo
     put_down = o.put_down[index]
     move_goal = jnp.where(put_down, o.cmd_pos - 0.02 * up, o.cmd_pos + correction)
     move_speed = jnp.where(push, PUSH_SPEED, CARRY_SPEED)
-    pos_m, _ = _toward(o.cmd_pos, o.cmd_quat, move_goal, o.cmd_quat, move_speed, TURN_SPEED)
-    move_done = effects & (put_down | (jnp.linalg.norm(error) < MOVE_TOLERANCE))
+    # A push first moves the fingertip low on the object (the touched part may be high up: pushing there tips tall
+    # objects over): 0 back off, 1 pre-push pose, 2 approach until touching, 3 push.
+    push_pos, push_quat, low_enough = _push_pose(data, geo, direction)
+    push_goals = jnp.stack([o.target_pos - PUSH_BACK_OFF * direction + PUSH_BACK_OFF * up,
+                            push_pos - PUSH_BACK_OFF * direction, push_pos + TOUCH_PRESS * direction, move_goal])
+    push_stage = jnp.clip(stage, 0, 3)
+    push_goal = push_goals[push_stage]
+    push_turn = jnp.where(push_stage == 0, o.cmd_quat, push_quat)
+    pos_p, quat_p = _toward(o.cmd_pos, o.cmd_quat, push_goal, push_turn, jnp.where(push_stage >= 2, PUSH_SPEED,
+                                                                                    FREE_SPEED), TURN_SPEED)
+    pos_c, _ = _toward(o.cmd_pos, o.cmd_quat, move_goal, o.cmd_quat, move_speed, TURN_SPEED)
+    pos_m = jnp.where(push & (push_stage < 3), pos_p, pos_c)
+    quat_m = jnp.where(push & (push_stage < 3), quat_p, o.cmd_quat)
+    push_arrived = (jnp.linalg.norm(pos_p - push_goal) < 1e-6) & (jnp.linalg.norm(tcp - push_goal) < ARRIVED)
+    touching_now = predicates.touching(data, geo, o.masks, geo.whole)
+    push_next = jnp.select([push_stage == 0, push_stage == 1, push_stage == 2],
+                           [push_arrived | (steps > 20), push_arrived | (steps > 30), touching_now | (steps > 30)],
+                           False)
+    # Already touching low down: push from where the fingertip is.
+    move_stage = jnp.where(push, jnp.where((push_stage == 0) & touching_now & low_enough(tcp, o.cmd_quat), 3,
+                                           push_stage + push_next), stage)
+    move_done = effects & (put_down | (jnp.linalg.norm(error) < MOVE_TOLERANCE)) & (~push | (push_stage == 3))
 
     # Rotate: turn the hand so the part's direction from the object origin reaches the goal direction.
     part_points, part_valid = predicates.part_cloud(data, geo, o.masks, jnp.maximum(o.part[index], 0))
@@ -333,7 +382,7 @@ def _act_one(o: OracleState, data, geo: PartGeometry, rows, env, follow_env: boo
     release_done = effects & (stage >= 2) & release_next
 
     pos = jnp.select([kind <= TOUCH, kind == MOVE, kind == ROTATE], [pos_r, pos_m, o.cmd_pos], pos_l)
-    quat = jnp.select([kind <= TOUCH, kind == ROTATE], [quat_r, quat_t], o.cmd_quat)
+    quat = jnp.select([kind <= TOUCH, kind == MOVE, kind == ROTATE], [quat_r, quat_m, quat_t], o.cmd_quat)
     holding = (kind == ROTATE) | ((kind == MOVE) & (o.grasping[index] | push))
     finger = jnp.select([kind <= TOUCH, kind == RELEASE, holding], [reach_finger, panda.FINGER_OPEN,
                                                                     panda.FINGER_CLOSED], o.finger)
@@ -343,17 +392,16 @@ def _act_one(o: OracleState, data, geo: PartGeometry, rows, env, follow_env: boo
         # Moves run their full 0.12 m (a carry stopped early swings the object off the fingers; the next move is
         # measured from the env's p0 anyway); other skills end once the env counts them.
         done = done | ((env_skill > o.skill) & (kind != MOVE))
-    next_stage = jnp.select([kind <= TOUCH, kind == RELEASE], [reach_stage, jnp.minimum(stage + release_next, 2)],
-                            stage)
+    next_stage = jnp.select([kind <= TOUCH, kind == MOVE, kind == RELEASE],
+                            [reach_stage, move_stage, jnp.minimum(stage + release_next, 2)], stage)
     # Release starts from the pose it has now: remember it as the retreat's reference.
     target_pos = jnp.where((kind == RELEASE) & (stage == 0), o.cmd_pos, o.target_pos)
     attempt = o.attempt + replan
     out_of_attempts = replan & (attempt >= MAX_ATTEMPTS)
     over_budget = o.skill_steps >= jnp.asarray(SKILL_BUDGET)[kind]
     # Carrying, pushing or turning without the object in hand fails at once (the original aborts such motions).
-    needs_hold = ((kind == MOVE) & (o.grasping[index] | push)) | (kind == ROTATE)
-    holds = jnp.where(push, predicates.touching(data, geo, o.masks, geo.whole),
-                      predicates.grasping(data, geo, o.masks, geo.whole))
+    needs_hold = ((kind == MOVE) & (o.grasping[index] | (push & (stage >= 3)))) | (kind == ROTATE)
+    holds = jnp.where(push, touching_now, predicates.grasping(data, geo, o.masks, geo.whole))
     lost = jnp.where(needs_hold & ~holds, o.lost + 1, 0)
     fail = running & ~done & (over_budget | out_of_attempts | (lost > LOST_STEPS))
 

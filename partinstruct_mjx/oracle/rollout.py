@@ -20,6 +20,9 @@ from partinstruct_mjx.errors import TaskError
 from partinstruct_mjx.obs import point_renderer
 from partinstruct_mjx.oracle import machine
 
+DONE_GRACE = 10
+"""Steps a scene keeps stepping (the oracle holding its last command) after the oracle finished its chain."""
+
 _plan = jax.jit(machine.plan)
 _act = jax.jit(machine.act)
 
@@ -90,6 +93,7 @@ def run_oracle(env: PartInstructEnv, episodes: list, key: jax.Array, record: boo
     ended = np.zeros(batch, bool)
     success = np.zeros(batch, bool)
     length = np.zeros(batch, np.int32)
+    done_for = np.zeros(batch, np.int32)
     frames: list[dict] = []
     for _ in range(limit):
         if record:
@@ -98,14 +102,16 @@ def run_oracle(env: PartInstructEnv, episodes: list, key: jax.Array, record: boo
                            "body_pos": np.asarray(state.data.body_pos, np.float32),
                            "body_quat": np.asarray(state.data.body_quat, np.float32),
                            "target_mask": np.asarray(_target_masks(policy.state, surface, env.geometry)),
-                           "skill": np.asarray(policy.state.skill)})
+                           "skill": _chain_index(policy.state)})
         action = policy.act(env, state)
         if record:
             frames[-1]["action"] = np.asarray(action)
         state = env.step(state, action)
         length += ~ended
         oracle = policy.state
-        now = np.asarray(state.done) | np.asarray(oracle.failed) | (np.asarray(oracle.skill) == machine.DONE)
+        # The env judges the last skill one step after the oracle did: it gets DONE_GRACE steps to agree.
+        done_for = np.where(np.asarray(oracle.skill) == machine.DONE, done_for + 1, 0)
+        now = np.asarray(state.done) | np.asarray(oracle.failed) | (done_for > DONE_GRACE)
         success = np.where(ended, success, np.asarray(state.task.success))
         ended |= now
         if ended.all():
@@ -117,6 +123,12 @@ def run_oracle(env: PartInstructEnv, episodes: list, key: jax.Array, record: boo
         | ({"object_pose": _stack(frames, "object_pose")} if frames else {}),
         body_pos=_stack(frames, "body_pos"), body_quat=_stack(frames, "body_quat"),
         target_mask=_stack(frames, "target_mask"), initial_state=initial_state)
+
+
+def _chain_index(oracle: machine.OracleState) -> np.ndarray:
+    """(B,) the skill being executed; the chain's last skill once the oracle is DONE (waiting for the env)."""
+    skill = np.asarray(oracle.skill)
+    return np.where(skill == machine.DONE, np.asarray(oracle.num_skills) - 1, skill)
 
 
 def _stack(frames: list[dict], name: str) -> np.ndarray:
