@@ -16,7 +16,6 @@ import h5py
 import jax
 import numpy as np
 
-from partinstruct_mjx.assets.partnet import category_slug
 from partinstruct_mjx.errors import DataError
 
 _LEDGER = "progress.json"
@@ -77,21 +76,15 @@ def replay_demos(path: str | os.PathLike, batch_size: int = 16, skill_mode: bool
                  backend: str = "mujoco", assets: str | os.PathLike | None = None,
                  num_threads: int | None = None) -> list[ReplayResult]:
     """Replay the stored demos of `path` (see load_stored_demos), demos of one object batched together."""
-    from partinstruct_mjx.data.synthesis import _bucket, _object_paths
+    from partinstruct_mjx.data.synthesis import object_batches, object_groups, object_paths
     from partinstruct_mjx.paths import assets_root
 
     demos = load_stored_demos(path, limit)
     root = Path(assets) if assets is not None else assets_root()
-    objects = _object_paths([d["episode"] for d in demos], root)
-    groups: dict[tuple[str, str], list[dict]] = {}
-    for demo in demos:
-        episode = demo["episode"]
-        groups.setdefault((category_slug(episode.obj_class), episode.obj_id), []).append(demo)
+    objects = object_paths([d["episode"] for d in demos], root)
     results = []
-    for key, mine in groups.items():
-        for first in range(0, len(mine), batch_size):
-            batch = mine[first:first + batch_size]
-            size = _bucket(len(batch), batch_size)
+    for key, mine in object_groups(demos, episode_of=lambda demo: demo["episode"]).items():
+        for batch, size in object_batches(mine, batch_size):
             results += _replay_batch(objects[key], batch, size, skill_mode, backend, num_threads)
     return sorted(results, key=lambda r: r.ep_id)
 

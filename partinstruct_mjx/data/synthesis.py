@@ -93,7 +93,7 @@ def synthesize(episodes: list[Episode], out_dir: str | os.PathLike, batch_size: 
     if repeated:
         raise DataError(f"episode {repeated[0]} is given more than once")
     root = Path(assets) if assets is not None else assets_root()
-    objects = _object_paths(episodes, root)
+    objects = object_paths(episodes, root)
     writer = DemoWriter(out_dir, env_args(backend, sampler, seed))
     done = writer.finished_ids()
     todo = [e for e in episodes if e.ep_id not in done]
@@ -146,11 +146,16 @@ def _bucket(count: int, batch_size: int) -> int:
     return min(batch_size, 1 << (count - 1).bit_length())
 
 
-def object_groups(episodes: list[Episode]) -> dict[tuple[str, str], list[Episode]]:
-    """Episodes per object (category, obj_id), in (category, obj_id, ep_id) order: one env serves each group."""
-    groups: dict[tuple[str, str], list[Episode]] = {}
-    for episode in sorted(episodes, key=lambda e: (category_slug(e.obj_class), e.obj_id, e.ep_id)):
-        groups.setdefault((category_slug(episode.obj_class), episode.obj_id), []).append(episode)
+def object_groups(items: list, episode_of=lambda item: item) -> dict[tuple[str, str], list]:
+    """Items (episodes, or records holding one: `episode_of`) per object (category, obj_id), in (category, obj_id,
+    ep_id) order: one env serves each group."""
+    def key(item):
+        episode = episode_of(item)
+        return category_slug(episode.obj_class), episode.obj_id
+
+    groups: dict[tuple[str, str], list] = {}
+    for item in sorted(items, key=lambda item: (*key(item), episode_of(item).ep_id)):
+        groups.setdefault(key(item), []).append(item)
     return groups
 
 
@@ -165,7 +170,7 @@ def pad_batch(batch: list, size: int) -> list:
     return [batch[i % len(batch)] for i in range(size)]
 
 
-def _object_paths(episodes: list[Episode], root: Path) -> dict[tuple[str, str], Path]:
+def object_paths(episodes: list[Episode], root: Path) -> dict[tuple[str, str], Path]:
     """(category, obj_id) -> object.xml of every episode's object; TaskError for one the catalog lacks."""
     catalog = {(entry["category"], entry["id"]): root / entry["path"] / "object.xml" for entry in load_catalog(root)}
     paths = {}

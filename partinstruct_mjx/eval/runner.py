@@ -56,7 +56,7 @@ def evaluate(config: EvalConfig, out_dir: str | os.PathLike, policy: Policy | No
     """
     from tqdm import tqdm
 
-    from partinstruct_mjx.data.synthesis import _object_paths, object_batches, object_groups
+    from partinstruct_mjx.data.synthesis import object_paths, object_batches, object_groups
     from partinstruct_mjx.paths import assets_root
     from partinstruct_mjx.provenance import provenance
 
@@ -75,7 +75,7 @@ def evaluate(config: EvalConfig, out_dir: str | os.PathLike, policy: Policy | No
     if config.videos:
         _check_opengl()
     episodes = select_eval_episodes(config)
-    objects = _object_paths(episodes, Path(config.assets) if config.assets else assets_root())
+    objects = object_paths(episodes, Path(config.assets) if config.assets else assets_root())
     wanted = {e.ep_id for e in episodes}
     records = {ep_id: r for ep_id, r in _finished(out_dir, config).items() if ep_id in wanted}
     filmed = set()
