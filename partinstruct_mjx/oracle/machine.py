@@ -240,8 +240,8 @@ def act(oracle: OracleState, data, skill_rows: progress.GoalRows, geometry: Part
     """
     follow = (oracle.skill, oracle.p0, oracle.masks) if task is None else (task.skill_index, task.skill_p0,
                                                                            task.masks)
-    oracle = jax.vmap(partial(_act_one, follow_env=task is not None), in_axes=(0, 0, None, 0, 0))(
-        oracle, data, geometry, skill_rows, follow)
+    oracle = jax.vmap(partial(_act_one, follow_env=task is not None), in_axes=(0, 0, None, 0, 0, 0))(
+        oracle, data, geometry, skill_rows, follow, _push_poses(oracle, data, geometry))
     euler = quat_to_euler_xyz(oracle.cmd_quat)
     return oracle, jnp.concatenate([oracle.cmd_pos, euler, oracle.finger[:, None]], axis=1)
 
@@ -258,10 +258,24 @@ def _toward(cmd_pos, cmd_quat, goal_pos, goal_quat, speed, turn):
     return pos, quat / jnp.linalg.norm(quat)
 
 
+def _push_poses(oracle: OracleState, data, geo: PartGeometry):
+    """`_push_pose` of every environment, computed only on steps where some push is still placing its fingertip."""
+    index = jnp.clip(oracle.skill, 0, progress.MAX_SKILLS - 1)[:, None]
+    pushing = ((jnp.take_along_axis(oracle.kind, index, axis=1)[:, 0] == MOVE)
+               & jnp.take_along_axis(oracle.touching, index, axis=1)[:, 0] & (oracle.stage < 3)
+               & (oracle.skill != DONE) & ~oracle.failed)
+    direction = jnp.take_along_axis(oracle.direction, index[:, :, None], axis=1)[:, 0]
+    batch = direction.shape[0]
+    return jax.lax.cond(
+        pushing.any(), lambda: jax.vmap(_push_pose, in_axes=(0, None, 0))(data, geo, direction),
+        lambda: (jnp.zeros((batch, 3), jnp.float32), jnp.zeros((batch, 4), jnp.float32).at[:, 0].set(1.0),
+                 jnp.zeros(batch, jnp.float32)))
+
+
 def _push_pose(data, geo: PartGeometry, direction):
-    """TCP pose that puts the fingertip (hand tilted down by PUSH_TILT, facing the push) on the lowest point of the
-    object's face opposite the push, at least PUSH_HEIGHT above the table; and a test whether a TCP pose's fingertip
-    is already that low."""
+    """TCP pose (position, quaternion) that puts the fingertip (hand tilted down by PUSH_TILT, facing the push) on
+    the lowest point of the object's face opposite the push, at least PUSH_HEIGHT above the table; and that point's
+    height."""
     world = predicates.world_clouds(data, geo)
     points, valid = world[geo.whole], geo.valid[geo.whole]
     reach = jnp.where(valid, -(points @ direction), -jnp.inf)
@@ -272,12 +286,8 @@ def _push_pose(data, geo: PartGeometry, direction):
     cost = points[:, 2] + 2.0 * jnp.linalg.norm(lateral[:, :2], axis=-1)
     point = points[jnp.argmin(jnp.where(face, cost, jnp.inf))]
     z_axis = jnp.cos(PUSH_TILT) * direction - jnp.sin(PUSH_TILT) * jnp.array([0.0, 0.0, 1.0])
-    tip = predicates.FINGERTIP_OFFSET
-
-    def low_enough(tcp, quat):
-        return (tcp + tip * quat_rotate(quat, jnp.array([0.0, 0.0, 1.0])))[2] < point[2] + 0.02
-
-    return point - tip * z_axis, candidates.touch_quat(z_axis), low_enough
+    pos = point - predicates.FINGERTIP_OFFSET * z_axis
+    return pos.astype(jnp.float32), candidates.touch_quat(z_axis).astype(jnp.float32), point[2].astype(jnp.float32)
 
 
 def _skill_effects(o: OracleState, data, geo: PartGeometry, rows) -> jnp.ndarray:
@@ -285,7 +295,7 @@ def _skill_effects(o: OracleState, data, geo: PartGeometry, rows) -> jnp.ndarray
     return progress.evaluate(data, geo, o.masks, rows, o.p0).all()
 
 
-def _act_one(o: OracleState, data, geo: PartGeometry, rows, env, follow_env: bool):
+def _act_one(o: OracleState, data, geo: PartGeometry, rows, env, push_pose, follow_env: bool):
     env_skill, env_p0, env_masks = env
     if follow_env:
         # While the machine is on the env's skill it judges it as the env does; once the env has counted a skill the
@@ -334,7 +344,8 @@ def _act_one(o: OracleState, data, geo: PartGeometry, rows, env, follow_env: boo
     move_speed = jnp.where(push, PUSH_SPEED, CARRY_SPEED)
     # A push first moves the fingertip low on the object (the touched part may be high up: pushing there tips tall
     # objects over): 0 back off, 1 pre-push pose, 2 approach until touching, 3 push.
-    push_pos, push_quat, low_enough = _push_pose(data, geo, direction)
+    push_pos, push_quat, push_height = push_pose
+    tip_height = (tcp + predicates.FINGERTIP_OFFSET * quat_rotate(o.cmd_quat, up))[2]
     push_goals = jnp.stack([o.target_pos - PUSH_BACK_OFF * direction + PUSH_BACK_OFF * up,
                             push_pos - PUSH_BACK_OFF * direction, push_pos + TOUCH_PRESS * direction, move_goal])
     push_stage = jnp.clip(stage, 0, 3)
@@ -351,7 +362,7 @@ def _act_one(o: OracleState, data, geo: PartGeometry, rows, env, follow_env: boo
                            [push_arrived | (steps > 20), push_arrived | (steps > 30), touching_now | (steps > 30)],
                            False)
     # Already touching low down: push from where the fingertip is.
-    move_stage = jnp.where(push, jnp.where((push_stage == 0) & touching_now & low_enough(tcp, o.cmd_quat), 3,
+    move_stage = jnp.where(push, jnp.where((push_stage == 0) & touching_now & (tip_height < push_height + 0.02), 3,
                                            push_stage + push_next), stage)
     move_done = effects & (put_down | (jnp.linalg.norm(error) < MOVE_TOLERANCE)) & (~push | (push_stage == 3))
 
