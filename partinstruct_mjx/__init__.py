@@ -4,9 +4,8 @@ The public names below are imported on first use, so `import partinstruct_mjx` s
 for tools and worker processes that need only a part of the package.
 """
 
-import importlib
-
 from partinstruct_mjx.jax_setup import set_xla_flags
+from partinstruct_mjx.lazy import lazy_getattr
 
 set_xla_flags()
 
@@ -31,8 +30,4 @@ _PUBLIC = {
 }
 __all__ = sorted(_PUBLIC)
 
-
-def __getattr__(name: str):
-    if name in _PUBLIC:
-        return getattr(importlib.import_module(_PUBLIC[name]), name)
-    raise AttributeError(f"module 'partinstruct_mjx' has no attribute '{name}'")
+__getattr__ = lazy_getattr(__name__, _PUBLIC)

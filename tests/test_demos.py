@@ -143,9 +143,6 @@ def test_bad_input_exits_2(tmp_path, capsys, args, message):
     assert not (tmp_path / "out").exists()
 
 
-def test_help_explains_outputs_and_resume(capsys):
-    with pytest.raises(SystemExit) as exit_info:
-        main(["demos", "--help"])
-    assert exit_info.value.code == 0
-    out = capsys.readouterr().out
+def test_help_explains_outputs_and_resume(command_help):
+    out = command_help("demos")
     assert "data/<category>.hdf5" in out and "resume" in out and "--replay" in out

@@ -225,10 +225,8 @@ def test_a_file_as_policy_or_out_is_refused(tmp_path, capsys):
         EvalConfig(mode="both")
 
 
-def test_help_explains_policies_outputs_and_resume(capsys):
-    with pytest.raises(SystemExit):
-        main(["eval", "--help"])
-    text = capsys.readouterr().out
+def test_help_explains_policies_outputs_and_resume(command_help):
+    text = command_help("eval")
     for phrase in ("--planner-every", "results.json", "resume", "load_policy", "test4"):
         assert phrase in text
 

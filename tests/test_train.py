@@ -298,9 +298,6 @@ def test_cli_refuses_wrong_policy_and_foreign_run_dirs(cli_run, demo_dir, tmp_pa
     assert "is not a training run" in capsys.readouterr().err
 
 
-def test_help_explains_outputs_and_resume(capsys):
-    with pytest.raises(SystemExit) as exit_info:
-        main(["train", "--help"])
-    assert exit_info.value.code == 0
-    out = capsys.readouterr().out
+def test_help_explains_outputs_and_resume(command_help):
+    out = command_help("train")
     assert "checkpoints/<step>" in out and "resume" in out and "--policy {dp3,dp3s}" in out

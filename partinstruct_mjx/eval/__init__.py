@@ -3,7 +3,7 @@
 Names are imported on first use (the runner pulls in JAX and the simulator).
 """
 
-import importlib
+from partinstruct_mjx.lazy import lazy_getattr
 
 _PUBLIC = {
     "EvalConfig": "partinstruct_mjx.eval.config",
@@ -18,8 +18,4 @@ _PUBLIC = {
 }
 __all__ = sorted(_PUBLIC)
 
-
-def __getattr__(name: str):
-    if name in _PUBLIC:
-        return getattr(importlib.import_module(_PUBLIC[name]), name)
-    raise AttributeError(f"module 'partinstruct_mjx.eval' has no attribute '{name}'")
+__getattr__ = lazy_getattr(__name__, _PUBLIC)

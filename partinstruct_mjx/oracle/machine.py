@@ -133,7 +133,7 @@ def init(chains: dict, data, geometry: PartGeometry, keys: jax.Array) -> OracleS
     """Machine state at reset: first skill, command = the current TCP pose, fingers as they are; keys (B, 2), one
     per episode, so an episode's demo does not depend on its batch."""
     batch = chains["kind"].shape[0]
-    masks = jax.vmap(lambda s: spatial_masks(predicates.object_points(s, geometry)))(data)
+    masks = _sampled_masks(data, geometry)
     fields = {k: jnp.asarray(v) for k, v in chains.items()}
     zeros = jnp.zeros(batch, jnp.int32)
     return OracleState(
@@ -240,8 +240,10 @@ def act(oracle: OracleState, data, skill_rows: progress.GoalRows, geometry: Part
     """
     follow = (oracle.skill, oracle.p0, oracle.masks) if task is None else (task.skill_index, task.skill_p0,
                                                                            task.masks)
+    before = oracle.skill
     oracle = jax.vmap(partial(_act_one, follow_env=task is not None), in_axes=(0, 0, None, 0, 0, 0))(
         oracle, data, geometry, skill_rows, follow, _push_poses(oracle, data, geometry))
+    oracle = oracle.replace(masks=_resampled_masks(oracle.skill != before, oracle.masks, data, geometry))
     euler = quat_to_euler_xyz(oracle.cmd_quat)
     return oracle, jnp.concatenate([oracle.cmd_pos, euler, oracle.finger[:, None]], axis=1)
 
@@ -256,6 +258,19 @@ def _toward(cmd_pos, cmd_quat, goal_pos, goal_quat, speed, turn):
     step = jnp.minimum(angle, turn)
     quat = quat_multiply(axis_angle_to_quat(rotation / jnp.maximum(angle, 1e-9), step), cmd_quat)
     return pos, quat / jnp.linalg.norm(quat)
+
+
+def _sampled_masks(data, geo: PartGeometry) -> jnp.ndarray:
+    """(B, 7, M) spatial parts of every environment's object as it lies now."""
+    return jax.vmap(lambda d: spatial_masks(predicates.object_points(d, geo)))(data)
+
+
+def _resampled_masks(started, masks, data, geo: PartGeometry):
+    """Spatial parts sampled afresh where a new skill `started` (computed only on steps where one did)."""
+    def resample():
+        return jnp.where(started.reshape((-1,) + (1,) * (masks.ndim - 1)), _sampled_masks(data, geo), masks)
+
+    return jax.lax.cond(started.any(), resample, lambda: masks)
 
 
 def _push_poses(oracle: OracleState, data, geo: PartGeometry):
@@ -421,7 +436,6 @@ def _act_one(o: OracleState, data, geo: PartGeometry, rows, env, push_pose, foll
     skill = jnp.where(finished, next_skill, o.skill)
     new_index = jnp.clip(skill, 0, progress.MAX_SKILLS - 1)
     starts_reach = finished & (skill != DONE) & (o.kind[new_index] <= TOUCH)
-    new_masks = spatial_masks(predicates.object_points(data, geo))
     keep = ~running
     return o.replace(
         skill=skill,
@@ -432,7 +446,6 @@ def _act_one(o: OracleState, data, geo: PartGeometry, rows, env, push_pose, foll
         needs_plan=running & (starts_reach | (replan & ~out_of_attempts)),
         failed=o.failed | fail, failed_skill=jnp.where(fail, o.skill, o.failed_skill),
         p0=jnp.where(finished, data.object_pos, o.p0),
-        masks=jnp.where(finished, new_masks, o.masks),
         cmd_pos=jnp.where(keep, o.cmd_pos, pos), cmd_quat=jnp.where(keep, o.cmd_quat, quat),
         finger=jnp.where(keep, o.finger, finger),
         target_pos=target_pos)

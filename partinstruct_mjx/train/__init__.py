@@ -3,7 +3,7 @@
 Public names are imported on first use, so the CLI can read the configuration without loading JAX.
 """
 
-import importlib
+from partinstruct_mjx.lazy import lazy_getattr
 
 _PUBLIC = {
     "ModelConfig": "partinstruct_mjx.train.config",
@@ -18,8 +18,4 @@ _PUBLIC = {
 }
 __all__ = sorted(_PUBLIC)
 
-
-def __getattr__(name: str):
-    if name in _PUBLIC:
-        return getattr(importlib.import_module(_PUBLIC[name]), name)
-    raise AttributeError(f"module 'partinstruct_mjx.train' has no attribute '{name}'")
+__getattr__ = lazy_getattr(__name__, _PUBLIC)
