@@ -8,6 +8,7 @@ joints instead of stepping the simulation) docs/differences.md says so. Nothing 
 from __future__ import annotations
 
 import jax.numpy as jnp
+from flax import struct
 
 from partinstruct_mjx.control.rotations import quat_rotate
 from partinstruct_mjx.sim import panda
@@ -82,7 +83,11 @@ def at_position(state, target: jnp.ndarray, threshold: jnp.ndarray) -> jnp.ndarr
 def facing(state, geo, masks, part, direction: jnp.ndarray, threshold=FACING_ANGLE, world=None) -> jnp.ndarray:
     """The vector from the object origin to the part's mean point is within `threshold` rad of `direction`."""
     points, valid = part_cloud(state, geo, masks, part, world)
-    vector = masked_mean(points, valid) - state.object_pos
+    return points_along(masked_mean(points, valid) - state.object_pos, direction, threshold)
+
+
+def points_along(vector: jnp.ndarray, direction: jnp.ndarray, threshold) -> jnp.ndarray:
+    """`vector` is within `threshold` rad of `direction` (FACING's angle test)."""
     cosine = vector @ direction / jnp.maximum(jnp.linalg.norm(vector) * jnp.linalg.norm(direction), 1e-9)
     return jnp.arccos(jnp.clip(cosine, -1.0, 1.0)) < threshold
 
@@ -101,12 +106,21 @@ def grasping(state, geo, masks, part, world=None) -> jnp.ndarray:
     return ((force > GRASP_FORCE) & on_part).any()
 
 
+def fingertip(state) -> jnp.ndarray:
+    """World fingertip point (3,): TCP + FINGERTIP_OFFSET along the TCP's z axis."""
+    return state.tcp_pos + quat_rotate(state.tcp_quat, jnp.array([0.0, 0.0, FINGERTIP_OFFSET]))
+
+
+def fingers_closed(state) -> jnp.ndarray:
+    return state.finger_qpos.sum() < FINGERS_CLOSED_WIDTH
+
+
 def touching(state, geo, masks, part, world=None) -> jnp.ndarray:
     """The gripper is closed and its fingertip point is within 1 cm of the part."""
-    tip = state.tcp_pos + quat_rotate(state.tcp_quat, jnp.array([0.0, 0.0, FINGERTIP_OFFSET]))
+    tip = fingertip(state)
     points, valid = part_cloud(state, geo, masks, part, world)
     distance = jnp.where(valid, jnp.linalg.norm(points - tip, axis=-1), jnp.inf).min()
-    return (state.finger_qpos.sum() < FINGERS_CLOSED_WIDTH) & (distance < TOUCH_DISTANCE)
+    return fingers_closed(state) & (distance < TOUCH_DISTANCE)
 
 
 def released(state, geo, masks, world=None) -> jnp.ndarray:
@@ -114,3 +128,55 @@ def released(state, geo, masks, world=None) -> jnp.ndarray:
     whole = jnp.asarray(geo.whole)
     return (~grasping(state, geo, masks, whole, world) & ~touching(state, geo, masks, whole, world)
             & gripper_open(state) & min_distance(state))
+
+
+@struct.dataclass
+class PartFacts:
+    """The part-dependent predicates of one environment for every part row at once (what `grasping`, `touching`
+    and `facing` compute one part at a time), plus ON.
+
+    grasped, touched: (K,) GRASPING / TOUCHING of each part row; centers: (K, 3) world mean point of each row's
+    (masked) cloud; on_table: ON of the object.
+    """
+
+    grasped: jnp.ndarray
+    touched: jnp.ndarray
+    centers: jnp.ndarray
+    on_table: jnp.ndarray
+
+
+def part_facts(state, geo: PartGeometry, masks: jnp.ndarray) -> PartFacts:
+    """`PartFacts` of one environment with each distinct cloud transformed and searched once.
+
+    The spatial rows and the whole object share the object cloud (the spatial rows differ only by their mask), so
+    distances to it are computed once and reduced per mask; semantic rows use their own clouds.
+    """
+    n = geo.num_semantic
+    semantic = world_points(state.body_pos, state.body_quat, geo.points[:n], geo.bodies[:n])  # (n, M, 3)
+    whole = object_points(state, geo)  # (M, 3)
+    semantic_valid = geo.valid[:n]
+    rows = jnp.concatenate([masks & geo.valid[geo.whole], geo.valid[geo.whole][None]])  # spatial rows, whole
+
+    def mean(points, valid):
+        return (valid.astype(points.dtype) @ points) / jnp.maximum(valid.sum(axis=-1), 1)[:, None]
+
+    centers = jnp.concatenate([jnp.einsum("km,kmc->kc", semantic_valid.astype(semantic.dtype), semantic)
+                               / jnp.maximum(semantic_valid.sum(axis=-1), 1)[:, None], mean(whole, rows)])
+
+    tip = fingertip(state)
+    tip_semantic = (jnp.linalg.norm(semantic - tip, axis=-1) < TOUCH_DISTANCE) & semantic_valid
+    tip_whole = jnp.linalg.norm(whole - tip, axis=-1) < TOUCH_DISTANCE
+    touched = fingers_closed(state) & jnp.concatenate([tip_semantic.any(axis=-1), (tip_whole & rows).any(axis=-1)])
+
+    geom = state.contact_geom  # (2, C) per finger
+    label = geo.geom_part[jnp.maximum(geom, 0)]
+    on_object = (geom >= 0) & (label >= 0)
+    pressing = (state.contact_force * on_object).sum(axis=-1) > GRASP_FORCE  # (2,)
+    labelled = (on_object[..., None] & (label[..., None] == jnp.arange(n))).any(axis=1)  # (2, n)
+    gap = jnp.linalg.norm(state.contact_pos[..., None, :] - whole, axis=-1)  # (2, C, M)
+    near = (on_object[..., None] & (gap < SPATIAL_CONTACT_DISTANCE)).any(axis=1)  # (2, M)
+    spatial = (near[:, None] & rows[None, :-1]).any(axis=-1)  # (2, 7)
+    on_part = jnp.concatenate([labelled, spatial, on_object.any(axis=-1)[:, None]], axis=1)
+    grasped = (pressing[:, None] & on_part).any(axis=0)
+    on_table_now = whole[:, 2].min() <= TABLE_HEIGHT + ON_TABLE_DISTANCE
+    return PartFacts(grasped=grasped, touched=touched, centers=centers, on_table=on_table_now)

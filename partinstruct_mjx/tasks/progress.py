@@ -134,17 +134,17 @@ def compile_episodes(episodes: list[tuple[int, list[SkillStep]]], geo: PartGeome
 
 def evaluate(state, geo: PartGeometry, masks: jnp.ndarray, rows: GoalRows, p0: jnp.ndarray) -> jnp.ndarray:
     """(G,) truth of each goal row for one environment; padding rows are true."""
-    world = predicates.world_clouds(state, geo)
-    on_table = predicates.on_table(state, geo, world)
-    released = predicates.released(state, geo, masks, world)
+    facts = predicates.part_facts(state, geo, masks)
+    released = (~facts.grasped[geo.whole] & ~facts.touched[geo.whole] & predicates.gripper_open(state)
+                & predicates.min_distance(state))
 
     def one(kind, part, direction, offset, threshold):
         values = jnp.stack([
             jnp.asarray(True),
-            on_table,
-            predicates.grasping(state, geo, masks, part, world),
-            predicates.touching(state, geo, masks, part, world),
-            predicates.facing(state, geo, masks, part, direction, threshold, world),
+            facts.on_table,
+            facts.grasped[part],
+            facts.touched[part],
+            predicates.points_along(facts.centers[part] - state.object_pos, direction, threshold),
             predicates.at_position(state, p0 + offset, threshold),
             released,
         ])
