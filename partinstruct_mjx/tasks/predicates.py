@@ -7,6 +7,7 @@ joints instead of stepping the simulation) docs/differences.md says so. Nothing 
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 from flax import struct
 
@@ -146,37 +147,74 @@ class PartFacts:
 
 
 def part_facts(state, geo: PartGeometry, masks: jnp.ndarray) -> PartFacts:
-    """`PartFacts` of one environment with each distinct cloud transformed and searched once.
+    """`PartFacts` of one environment; each distinct cloud is transformed and searched once."""
+    return _facts(state, geo, masks, contact_regions(state, geo, masks), tip_near(state, geo, masks))
 
-    The spatial rows and the whole object share the object cloud (the spatial rows differ only by their mask), so
-    distances to it are computed once and reduced per mask; semantic rows use their own clouds.
-    """
+
+def batch_part_facts(state, geo: PartGeometry, masks: jnp.ndarray) -> PartFacts:
+    """`part_facts` of a batch (leading dimension B): the contact search runs only when some finger of the batch
+    presses the object and the fingertip search only when some gripper is closed, since GRASPING and TOUCHING are
+    false otherwise whatever the searches find."""
+    batch = masks.shape[0]
+    spatial = masks.shape[1]
+    pressed = jax.vmap(pressing, in_axes=(0, None))(state, geo).any()
+    regions = jax.lax.cond(pressed, lambda: jax.vmap(contact_regions, in_axes=(0, None, 0))(state, geo, masks),
+                           lambda: jnp.zeros((batch, 2, spatial), bool))
+    closed = jax.vmap(fingers_closed)(state).any()
+    tips = jax.lax.cond(closed, lambda: jax.vmap(tip_near, in_axes=(0, None, 0))(state, geo, masks),
+                        lambda: jnp.zeros((batch, len(geo.names)), bool))
+    return jax.vmap(_facts, in_axes=(0, None, 0, 0, 0))(state, geo, masks, regions, tips)
+
+
+def _on_object(state, geo: PartGeometry) -> tuple[jnp.ndarray, jnp.ndarray]:
+    """(2, C) contacts of each finger that touch the object, and the part row label of each contact's geom."""
+    geom = state.contact_geom
+    label = geo.geom_part[jnp.maximum(geom, 0)]
+    return (geom >= 0) & (label >= 0), label
+
+
+def pressing(state, geo: PartGeometry) -> jnp.ndarray:
+    """(2,) each finger presses the object with more than GRASP_FORCE newtons (summed over its contacts)."""
+    on_object, _ = _on_object(state, geo)
+    return (state.contact_force * on_object).sum(axis=-1) > GRASP_FORCE
+
+
+def _spatial_rows(geo: PartGeometry, masks: jnp.ndarray) -> jnp.ndarray:
+    """(8, M) validity of the object cloud's points for the spatial rows, then the whole object."""
+    valid = geo.valid[geo.whole]
+    return jnp.concatenate([masks & valid, valid[None]])
+
+
+def contact_regions(state, geo: PartGeometry, masks: jnp.ndarray) -> jnp.ndarray:
+    """(2, 7) per finger: one of its object contacts lies within SPATIAL_CONTACT_DISTANCE of each spatial part."""
+    on_object, _ = _on_object(state, geo)
+    gap = jnp.linalg.norm(state.contact_pos[..., None, :] - object_points(state, geo), axis=-1)  # (2, C, M)
+    near = (on_object[..., None] & (gap < SPATIAL_CONTACT_DISTANCE)).any(axis=1)  # (2, M)
+    return (near[:, None] & _spatial_rows(geo, masks)[None, :-1]).any(axis=-1)
+
+
+def tip_near(state, geo: PartGeometry, masks: jnp.ndarray) -> jnp.ndarray:
+    """(K,) the fingertip point is within TOUCH_DISTANCE of each part row (TOUCHING without the closed gripper)."""
+    n = geo.num_semantic
+    tip = fingertip(state)
+    semantic = world_points(state.body_pos, state.body_quat, geo.points[:n], geo.bodies[:n])  # (n, M, 3)
+    near_semantic = (jnp.linalg.norm(semantic - tip, axis=-1) < TOUCH_DISTANCE) & geo.valid[:n]
+    near_whole = jnp.linalg.norm(object_points(state, geo) - tip, axis=-1) < TOUCH_DISTANCE
+    return jnp.concatenate([near_semantic.any(axis=-1), (near_whole & _spatial_rows(geo, masks)).any(axis=-1)])
+
+
+def _facts(state, geo: PartGeometry, masks, regions, tips) -> PartFacts:
     n = geo.num_semantic
     semantic = world_points(state.body_pos, state.body_quat, geo.points[:n], geo.bodies[:n])  # (n, M, 3)
-    whole = object_points(state, geo)  # (M, 3)
-    semantic_valid = geo.valid[:n]
-    rows = jnp.concatenate([masks & geo.valid[geo.whole], geo.valid[geo.whole][None]])  # spatial rows, whole
-
-    def mean(points, valid):
-        return (valid.astype(points.dtype) @ points) / jnp.maximum(valid.sum(axis=-1), 1)[:, None]
-
-    centers = jnp.concatenate([jnp.einsum("km,kmc->kc", semantic_valid.astype(semantic.dtype), semantic)
-                               / jnp.maximum(semantic_valid.sum(axis=-1), 1)[:, None], mean(whole, rows)])
-
-    tip = fingertip(state)
-    tip_semantic = (jnp.linalg.norm(semantic - tip, axis=-1) < TOUCH_DISTANCE) & semantic_valid
-    tip_whole = jnp.linalg.norm(whole - tip, axis=-1) < TOUCH_DISTANCE
-    touched = fingers_closed(state) & jnp.concatenate([tip_semantic.any(axis=-1), (tip_whole & rows).any(axis=-1)])
-
-    geom = state.contact_geom  # (2, C) per finger
-    label = geo.geom_part[jnp.maximum(geom, 0)]
-    on_object = (geom >= 0) & (label >= 0)
-    pressing = (state.contact_force * on_object).sum(axis=-1) > GRASP_FORCE  # (2,)
+    whole = object_points(state, geo)
+    semantic_valid = geo.valid[:n].astype(semantic.dtype)
+    rows = _spatial_rows(geo, masks).astype(whole.dtype)
+    centers = jnp.concatenate([jnp.einsum("km,kmc->kc", semantic_valid, semantic)
+                               / jnp.maximum(semantic_valid.sum(axis=-1), 1)[:, None],
+                               (rows @ whole) / jnp.maximum(rows.sum(axis=-1), 1)[:, None]])
+    on_object, label = _on_object(state, geo)
     labelled = (on_object[..., None] & (label[..., None] == jnp.arange(n))).any(axis=1)  # (2, n)
-    gap = jnp.linalg.norm(state.contact_pos[..., None, :] - whole, axis=-1)  # (2, C, M)
-    near = (on_object[..., None] & (gap < SPATIAL_CONTACT_DISTANCE)).any(axis=1)  # (2, M)
-    spatial = (near[:, None] & rows[None, :-1]).any(axis=-1)  # (2, 7)
-    on_part = jnp.concatenate([labelled, spatial, on_object.any(axis=-1)[:, None]], axis=1)
-    grasped = (pressing[:, None] & on_part).any(axis=0)
-    on_table_now = whole[:, 2].min() <= TABLE_HEIGHT + ON_TABLE_DISTANCE
-    return PartFacts(grasped=grasped, touched=touched, centers=centers, on_table=on_table_now)
+    on_part = jnp.concatenate([labelled, regions, on_object.any(axis=-1)[:, None]], axis=1)  # (2, K)
+    return PartFacts(grasped=(pressing(state, geo)[:, None] & on_part).any(axis=0),
+                     touched=fingers_closed(state) & tips, centers=centers,
+                     on_table=whole[:, 2].min() <= TABLE_HEIGHT + ON_TABLE_DISTANCE)

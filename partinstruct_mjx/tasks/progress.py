@@ -132,9 +132,11 @@ def compile_episodes(episodes: list[tuple[int, list[SkillStep]]], geo: PartGeome
             "freeze_spatial": freeze}
 
 
-def evaluate(state, geo: PartGeometry, masks: jnp.ndarray, rows: GoalRows, p0: jnp.ndarray) -> jnp.ndarray:
-    """(G,) truth of each goal row for one environment; padding rows are true."""
-    facts = predicates.part_facts(state, geo, masks)
+def evaluate(state, geo: PartGeometry, masks: jnp.ndarray, rows: GoalRows, p0: jnp.ndarray,
+             facts: predicates.PartFacts | None = None) -> jnp.ndarray:
+    """(G,) truth of each goal row for one environment; padding rows are true. `facts` are
+    `predicates.part_facts(state, geo, masks)` when the caller has them (a batch computes them with fewer searches)."""
+    facts = predicates.part_facts(state, geo, masks) if facts is None else facts
     released = (~facts.grasped[geo.whole] & ~facts.touched[geo.whole] & predicates.gripper_open(state)
                 & predicates.min_distance(state))
 
@@ -157,9 +159,13 @@ def _current_masks(state, geo):
     return spatial_masks(predicates.object_points(state, geo))
 
 
+def _batch_masks(state, geo):
+    return jax.vmap(_current_masks, in_axes=(0, None))(state, geo)
+
+
 def initial_task_state(state, geo: PartGeometry, compiled: dict) -> TaskState:
     """Progress at reset: first skill, first phase, p0 = object position, spatial parts sampled now."""
-    masks = jax.vmap(_current_masks, in_axes=(0, None))(state, geo)
+    masks = _batch_masks(state, geo)
     batch = masks.shape[0]
     position = jnp.asarray(state.object_pos, jnp.float32)
     return TaskState(
@@ -174,27 +180,33 @@ def initial_task_state(state, geo: PartGeometry, compiled: dict) -> TaskState:
         completion=jnp.zeros(batch, jnp.float32))
 
 
+def _resampled(keep: jnp.ndarray, masks: jnp.ndarray, state, geo) -> jnp.ndarray:
+    """Spatial masks resampled where `keep` (B,) is false; computed only when some environment needs them."""
+    return jax.lax.cond(keep.all(), lambda: masks,
+                        lambda: jnp.where(keep[:, None, None], masks, _batch_masks(state, geo)))
+
+
 def _skill_update(task: TaskState, state, geo):
-    def one(task, state):
+    def one(task, state, facts):
         index = jnp.minimum(task.skill_index, MAX_SKILLS - 1)
         rows = jax.tree_util.tree_map(lambda x: x[index], task.skills)
-        met = evaluate(state, geo, task.masks, rows, task.skill_p0)
+        met = evaluate(state, geo, task.masks, rows, task.skill_p0, facts)
         finished = met.all() & ~task.success
         skill_index = task.skill_index + finished
-        masks = jnp.where(finished, _current_masks(state, geo), task.masks)  # resampled when the next skill starts
         p0 = jnp.where(finished, state.object_pos, task.skill_p0)
         success = skill_index >= task.num_skills
-        return task.replace(skill_index=skill_index, masks=masks, skill_p0=p0, goals_met=met, success=success,
-                            completion=skill_index / task.num_skills)
+        return finished, task.replace(skill_index=skill_index, skill_p0=p0, goals_met=met, success=success,
+                                      completion=skill_index / task.num_skills)
 
-    return jax.vmap(one, in_axes=(0, 0))(task, state)
+    facts = predicates.batch_part_facts(state, geo, task.masks)
+    finished, task = jax.vmap(one)(task, state, facts)
+    return task.replace(masks=_resampled(~finished, task.masks, state, geo))  # resampled when the next skill starts
 
 
 def _task_update(task: TaskState, state, geo):
-    def one(task, state):
-        masks = jnp.where(task.freeze_spatial, task.masks, _current_masks(state, geo))
+    def one(task, state, masks, facts):
         rows = jax.tree_util.tree_map(lambda x: x[task.phase], task.phases)
-        met = evaluate(state, geo, masks, rows, task.task_p0)
+        met = evaluate(state, geo, masks, rows, task.task_p0, facts)
         real = rows.kind > 0
         holds = met.all() & ~task.success
         last = task.phase == task.num_phases - 1
@@ -207,7 +219,8 @@ def _task_update(task: TaskState, state, geo):
         return task.replace(masks=masks, phase=phase, goals_met=met, success=success,
                             completion=jnp.where(success, 1.0, completion))
 
-    return jax.vmap(one, in_axes=(0, 0))(task, state)
+    masks = _resampled(task.freeze_spatial, task.masks, state, geo)
+    return jax.vmap(one)(task, state, masks, predicates.batch_part_facts(state, geo, masks))
 
 
 def update(task: TaskState, state, geo: PartGeometry, skill_mode: bool) -> TaskState:
