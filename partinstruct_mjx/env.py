@@ -95,7 +95,6 @@ class PartInstructEnv:
         self._target_rows = np.full((batch_size, progress.MAX_SKILLS), -1, np.int32)
         self._surface = None
         self._renderer = None
-        self._update = jax.jit(progress.update, static_argnames="skill_mode")
         self._initial = jax.jit(progress.initial_task_state)
 
     def close(self) -> None:
@@ -135,7 +134,7 @@ class PartInstructEnv:
         info = {"steps": jnp.zeros(self.batch_size, jnp.int32), "step_limit": jnp.asarray(limits),
                 "truncated": jnp.zeros(self.batch_size, bool),
                 "joint_targets": jnp.asarray(data.arm_qpos, jnp.float32)}
-        return self._state(data, task, info)
+        return State(data=data, **_outputs(data, task, info))
 
     def step(self, state: State, action) -> State:
         """Apply one (B, 7) Euler or (B, 8) quaternion action to every scene for one 20 Hz step."""
@@ -145,12 +144,8 @@ class PartInstructEnv:
                             f"rotation='{self.config.rotation}', got {tuple(action.shape)}")
         ctrl = joint_targets(self.kinematics, self.config.ik, state.info["joint_targets"], action)
         data = self.backend.step(np.asarray(ctrl) if self.config.backend == "mujoco" else ctrl)
-        task = self._update(state.task, data, self.geometry, skill_mode=self.config.skill_mode)
-        running = ~state.done
-        steps = state.info["steps"] + running
-        info = {**state.info, "steps": steps, "truncated": ~task.success & (steps >= state.info["step_limit"]),
-                "joint_targets": ctrl[:, :7]}
-        return self._state(data, task, info)
+        return State(data=data, **_advance(state.task, state.info, state.done, data, self.geometry, ctrl,
+                                           self.config.skill_mode))
 
     def instructions(self, state: State) -> list[str]:
         """The instruction each scene's policy sees now: the current skill's (skill mode) or the task's."""
@@ -198,13 +193,26 @@ class PartInstructEnv:
                                     None if parts[b] < 0 else int(parts[b]), state.task.masks[b], wrist)
                 for b in range(self.batch_size)]
 
-    def _state(self, data: SceneState, task: progress.TaskState, info: dict) -> State:
-        done = task.success | info["truncated"]
-        metrics = {"success": task.success, "completion": task.completion, "skill_index": task.skill_index,
-                   "phase": task.phase}
-        metrics |= {f"goal_{g}": task.goals_met[:, g] for g in range(progress.MAX_GOALS)}
-        return State(data=data, task=task, obs=observe(data, task), reward=task.success.astype(jnp.float32),
-                     done=done, metrics=metrics, info=info)
+
+@jax.jit(static_argnames="skill_mode")
+def _advance(task, info: dict, done, data: SceneState, geometry, ctrl, skill_mode: bool) -> dict:
+    """Everything of a step after physics, in one dispatch: progress, step counts, outputs (all but `data`)."""
+    task = progress.update(task, data, geometry, skill_mode=skill_mode)
+    steps = info["steps"] + ~done
+    info = {**info, "steps": steps, "truncated": ~task.success & (steps >= info["step_limit"]),
+            "joint_targets": ctrl[:, :7]}
+    return _outputs(data, task, info)
+
+
+@jax.jit
+def _outputs(data: SceneState, task: progress.TaskState, info: dict) -> dict:
+    """The State fields other than `data` for a task state and info."""
+    done = task.success | info["truncated"]
+    metrics = {"success": task.success, "completion": task.completion, "skill_index": task.skill_index,
+               "phase": task.phase}
+    metrics |= {f"goal_{g}": task.goals_met[:, g] for g in range(progress.MAX_GOALS)}
+    return {"task": task, "obs": observe(data, task), "reward": task.success.astype(jnp.float32), "done": done,
+            "metrics": metrics, "info": info}
 
 
 def hold_action(tcp_pose, finger: float = panda.FINGER_OPEN) -> np.ndarray:
