@@ -134,18 +134,20 @@ class PartInstructEnv:
         info = {"steps": jnp.zeros(self.batch_size, jnp.int32), "step_limit": jnp.asarray(limits),
                 "truncated": jnp.zeros(self.batch_size, bool),
                 "joint_targets": jnp.asarray(data.arm_qpos, jnp.float32)}
-        return State(data=data, **_outputs(data, task, info))
+        return _assemble(data, task, info, _outputs(data, task, info))
 
     def step(self, state: State, action) -> State:
         """Apply one (B, 7) Euler or (B, 8) quaternion action to every scene for one 20 Hz step."""
-        action = jnp.asarray(action, jnp.float32)
+        # A host action stays on the host until the IK's dispatch copies it (an eager conversion costs as much).
+        action = jnp.asarray(action, jnp.float32) if isinstance(action, jax.Array) else np.asarray(action, np.float32)
         if action.shape != (self.batch_size, self.config.action_size):
             raise TaskError(f"action must have shape ({self.batch_size}, {self.config.action_size}) for "
                             f"rotation='{self.config.rotation}', got {tuple(action.shape)}")
         ctrl = joint_targets(self.kinematics, self.config.ik, state.info["joint_targets"], action)
         data = self.backend.step(np.asarray(ctrl) if self.config.backend == "mujoco" else ctrl)
-        return State(data=data, **_advance(state.task, state.info, state.done, data, self.geometry, ctrl,
-                                           self.config.skill_mode))
+        changed, info, outputs = _advance(state.task, state.info, state.done, data, self.geometry, ctrl,
+                                          self.config.skill_mode)
+        return _assemble(data, state.task.replace(**changed), {**state.info, **info}, outputs)
 
     def instructions(self, state: State) -> list[str]:
         """The instruction each scene's policy sees now: the current skill's (skill mode) or the task's."""
@@ -195,24 +197,30 @@ class PartInstructEnv:
 
 
 @jax.jit(static_argnames="skill_mode")
-def _advance(task, info: dict, done, data: SceneState, geometry, ctrl, skill_mode: bool) -> dict:
-    """Everything of a step after physics, in one dispatch: progress, step counts, outputs (all but `data`)."""
+def _advance(task, info: dict, done, data: SceneState, geometry, ctrl, skill_mode: bool):
+    """Everything of a step after physics in one dispatch. Returns only what changes (every returned array costs
+    time at batch 1): the `progress.PROGRESS_FIELDS` of the task, the changed info and `_outputs`."""
     task = progress.update(task, data, geometry, skill_mode=skill_mode)
     steps = info["steps"] + ~done
-    info = {**info, "steps": steps, "truncated": ~task.success & (steps >= info["step_limit"]),
-            "joint_targets": ctrl[:, :7]}
-    return _outputs(data, task, info)
+    info = {"steps": steps, "truncated": ~task.success & (steps >= info["step_limit"]), "joint_targets": ctrl[:, :7]}
+    changed = {name: getattr(task, name) for name in progress.PROGRESS_FIELDS}
+    return changed, info, _outputs(data, task, info)
 
 
 @jax.jit
 def _outputs(data: SceneState, task: progress.TaskState, info: dict) -> dict:
-    """The State fields other than `data` for a task state and info."""
-    done = task.success | info["truncated"]
+    """The arrays of a State that are computed from the task state and info rather than copied from them."""
+    return {"obs": observe(data, task), "reward": task.success.astype(jnp.float32),
+            "done": task.success | info["truncated"],
+            "goals": {f"goal_{g}": task.goals_met[:, g] for g in range(progress.MAX_GOALS)}}
+
+
+def _assemble(data: SceneState, task: progress.TaskState, info: dict, outputs: dict) -> State:
+    """The State of `data`, `task`, `info` and their `_outputs` (no JAX dispatch)."""
     metrics = {"success": task.success, "completion": task.completion, "skill_index": task.skill_index,
-               "phase": task.phase}
-    metrics |= {f"goal_{g}": task.goals_met[:, g] for g in range(progress.MAX_GOALS)}
-    return {"task": task, "obs": observe(data, task), "reward": task.success.astype(jnp.float32), "done": done,
-            "metrics": metrics, "info": info}
+               "phase": task.phase, **outputs["goals"]}
+    return State(data=data, task=task, obs=outputs["obs"],
+                 reward=outputs["reward"], done=outputs["done"], metrics=metrics, info=info)
 
 
 def hold_action(tcp_pose, finger: float = panda.FINGER_OPEN) -> np.ndarray:

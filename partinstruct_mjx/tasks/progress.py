@@ -25,6 +25,8 @@ MAX_PHASES = 2
 MOVE_THRESHOLD = 0.05
 FROZEN_SPATIAL_TYPES = (8, 10, 12, 13, 14, 15, 16)
 """Task mode keeps the spatial parts of these (rotation) types as sampled at reset (spec 3.3)."""
+PROGRESS_FIELDS = ("skill_index", "phase", "skill_p0", "masks", "goals_met", "success", "completion")
+"""The TaskState fields `update` changes (the others are fixed at reset)."""
 
 
 @struct.dataclass
