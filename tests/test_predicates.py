@@ -234,3 +234,54 @@ def test_task_mode_two_phases_complete_in_order(world):
     assert float(task.completion[0]) == pytest.approx(3 / 4)
     task = UPDATE(task, stack(world.state(offset=(0, UNIT_DISTANCE, 0))), world.geo, skill_mode=False)
     assert task.success[0]
+
+
+def _reference_facts(state, geo, masks):
+    """The part facts one part row at a time with the single predicates (the reference `part_facts` must match)."""
+    def row(part):
+        points, valid = predicates.part_cloud(state, geo, masks, part)
+        return (predicates.grasping(state, geo, masks, part), predicates.touching(state, geo, masks, part),
+                predicates.masked_mean(points, valid))
+
+    grasped, touched, centers = jax.vmap(row)(jax.numpy.arange(len(geo.names)))
+    return grasped, touched, centers, predicates.on_table(state, geo)
+
+
+@pytest.mark.parametrize("obj_id, type_id, found", [("laptop_000", 3, 0),
+                                                     pytest.param("stapler_004", 6, 1, marks=pytest.mark.slow)])
+def test_part_facts_match_the_single_predicates_on_an_oracle_rollout(obj_id, type_id, found):
+    """A grasp (articulated laptop) and a touch rollout: every part row, all at once and gated by batch, as one by
+    one. `found` is the fact (0 grasped, 1 touched) the rollout must make true somewhere, so its search is tested."""
+    from partinstruct_mjx.assets.catalog import load_catalog
+    from partinstruct_mjx.env import EnvConfig, PartInstructEnv
+    from partinstruct_mjx.oracle.rollout import OraclePolicy
+    from partinstruct_mjx.tasks.episodes import generate_episodes
+
+    root = paths.assets_root()
+    episode = next(e for e in generate_episodes(load_catalog(root), root, 0, 1, ("train",))
+                   if e.obj_id == obj_id and e.task_type == type_id)
+    states = []
+    with PartInstructEnv(root / "objects" / episode.obj_class / obj_id / "object.xml", 1, EnvConfig()) as env:
+        state = env.reset(jax.random.PRNGKey(1), [episode])
+        policy = OraclePolicy()
+        policy.reset(env, state, jax.random.PRNGKey(1))
+        while not state.done[0] and len(states) < 120:
+            state = env.step(state, policy.act(env, state))
+            states.append(jax.tree_util.tree_map(np.array, (state.data, state.task.masks)))
+        geo = env.geometry
+    data, masks = jax.tree_util.tree_map(lambda *x: np.concatenate(x), *states)
+    reference = jax.jit(jax.vmap(_reference_facts, in_axes=(0, None, 0)))(data, geo, masks)
+    single = jax.jit(jax.vmap(predicates.part_facts, in_axes=(0, None, 0)))(data, geo, masks)
+    batched = jax.jit(predicates.batch_part_facts)(data, geo, masks)
+    grasped, touched = np.asarray(reference[0]), np.asarray(reference[1])
+    assert (grasped, touched)[found].any()
+    idle = ~np.asarray(jax.vmap(predicates.pressing, in_axes=(0, None))(data, geo)).any(axis=1) & ~np.asarray(
+        jax.vmap(predicates.fingers_closed)(data))
+    assert 0 < idle.sum() < len(idle)
+    idle_data = jax.tree_util.tree_map(lambda x: x[idle], data)
+    skipped = jax.jit(predicates.batch_part_facts)(idle_data, geo, masks[idle])
+    for facts, rows in ((single, slice(None)), (batched, slice(None)), (skipped, idle)):
+        np.testing.assert_array_equal(facts.grasped, grasped[rows])
+        np.testing.assert_array_equal(facts.touched, touched[rows])
+        np.testing.assert_allclose(facts.centers, np.asarray(reference[2])[rows], atol=1e-6)
+        np.testing.assert_array_equal(facts.on_table, np.asarray(reference[3])[rows])
