@@ -224,7 +224,7 @@ def _bench(args) -> int:
         baseline = pybullet_baseline.measure(steps=args.steps, repeats=args.repeats, object_xml=mug)
         ours = {(batch, threads): pybullet_baseline.measure_partinstruct_env(mug, batch, args.steps, args.repeats,
                                                                              threads)
-                for batch, threads in ((1, 1), (8, 1), (8, 2))}
+                for batch, threads in ((1, 1), (8, 1), (32, 1), (8, 2))}
         table = pybullet_baseline.markdown(baseline, ours, "mug_000")
         print(table)
         title, heading = "pybullet", "CPU env vs PyBullet (the original's engine and method)"

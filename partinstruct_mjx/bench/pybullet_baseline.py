@@ -288,7 +288,7 @@ def measure(steps: int = 200, repeats: int = 3, object_xml: str | Path | None = 
 def measure_partinstruct_env(object_xml: str | Path, batch_size: int, steps: int = 200, repeats: int = 3,
                              num_threads: int | None = None) -> PyBulletResult:
     """Env steps/s (B x steps / s) of our `PartInstructEnv` on the C backend holding the TCP pose (IK, physics and
-    all predicates every step), type-3 episode on the mug's handle; reset time is not counted."""
+    the goal predicates every step), type-3 episode on the mug's handle; reset time is not counted."""
     import jax
 
     from partinstruct_mjx.env import EnvConfig, PartInstructEnv, hold_action
@@ -330,7 +330,10 @@ def markdown(pybullet: PyBulletResult, ours: dict[tuple[int, int], PyBulletResul
         "substeps, 150 solver iterations, calculateInverseKinematics (20 iterations) every step, predicates on "
         "10,000-point NumPy clouds every step (without the extra 12 physics steps the original's TOUCHING takes: "
         "generous to PyBullet); the TCP target circles 5 cm around home. Ours: `PartInstructEnv`, 5 ms x 10 substeps, "
-        "batched JAX IK, all predicates of a type-3 episode every step, holding the pose. 'Physics threads' counts "
-        "MuJoCo's worker threads; XLA may run the JAX parts on the other core, so single-thread rows are an upper "
-        "bound per core. Target (DESIGN.md): >= 5x per core.\n\n| engine | batch | physics threads | env steps/s (median) | range | per-core ratio |\n"
+        "batched JAX IK, the goals of a type-3 episode every step, holding the pose with the gripper open (the "
+        "predicates of every part row are computed at once; the contact and fingertip searches run only when some "
+        "finger presses the object or some gripper is closed, since GRASPING and TOUCHING are false otherwise, so "
+        "they do not run here, while PyBullet's way searches the fingertip distance every step). 'Physics threads' "
+        "counts MuJoCo's worker threads; XLA may run the JAX parts on the other core, so single-thread rows are an "
+        "upper bound per core. Target (DESIGN.md): >= 5x per core.\n\n| engine | batch | physics threads | env steps/s (median) | range | per-core ratio |\n"
         "|---|---|---|---|---|---|\n" + "\n".join(rows) + "\n")
