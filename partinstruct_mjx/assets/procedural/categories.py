@@ -16,7 +16,7 @@ Design frame: metres, Z up, object front towards -X, resting on z=0 (the writer 
 | stapler     | length 12-18 cm, width 3.5-5 cm, height 4-7 cm | lid, body, base body                             |
 | kettle      | height 14-20 cm, diameter 12-16 cm             | handle, lid                                      |
 | mug         | height 8-12 cm, diameter 6-9 cm                | handle, body                                     |
-| box         | 10-18 x 8-14 cm, height 5-10 cm                | rotation lid, base body (walls)                  |
+| box         | 8-14 x 4.5-6 cm, height 4-8 cm                 | rotation lid, base body (walls)                  |
 | dispenser   | body diameter 5-6.8 cm, height 13-22 cm        | base body, head, pressing lid, handle, outlier   |
 """
 
@@ -224,9 +224,9 @@ def bottle(rng: Rng) -> tuple[Link, ...]:
 
 
 def box(rng: Rng) -> tuple[Link, ...]:
-    """Open rounded box with a lid hinged at the back: a skirted cap or a flat overhanging panel, with a pull tab."""
-    size_x, size_y, height = _u(rng, 0.10, 0.18), _u(rng, 0.08, 0.14), _u(rng, 0.05, 0.10)
-    size_y = min(size_y, size_x)
+    """Open rounded box with a lid hinged at the back: a skirted cap or a flat overhanging panel, with a pull tab.
+    At most 6 cm wide (7 cm with the lid), so the Panda's 8 cm opening closes across it."""
+    size_x, size_y, height = _u(rng, 0.08, 0.14), _u(rng, 0.045, 0.06), _u(rng, 0.04, 0.08)
     corner, wall, floor = _u(rng, 0.006, 0.015), _u(rng, 0.003, 0.005), _u(rng, 0.003, 0.005)
     base = tray(size_x, size_y, corner, height, wall, floor)
     top = _u(rng, 0.003, 0.005)
