@@ -221,17 +221,15 @@ def _bench(args) -> int:
         from partinstruct_mjx.bench import pybullet_baseline
 
         mug = paths.assets_root() / "objects/mug/mug_000/object.xml"
-        baseline = pybullet_baseline.measure(steps=args.steps, repeats=args.repeats, object_xml=mug)
-        ours = {(batch, threads): pybullet_baseline.measure_partinstruct_env(mug, batch, args.steps, args.repeats,
-                                                                             threads)
-                for batch, threads in ((1, 1), (8, 1), (32, 1), (8, 2))}
-        table = pybullet_baseline.markdown(baseline, ours, "mug_000")
+        baseline, ours = pybullet_baseline.compare(mug, [(1, 1), (8, 1), (32, 1), (8, 2)], args.steps, args.repeats)
+        table = pybullet_baseline.markdown(baseline, ours, "mug_000", args.steps)
         print(table)
         title, heading = "pybullet", "CPU env vs PyBullet (the original's engine and method)"
         data = [env_row("PyBullet, the original's way (CPU, 1 thread)", 1, baseline.env_steps_per_s, baseline.spread,
                         engine="pybullet", threads=1)]
         data += [env_row(f"PartInstructEnv, mujoco backend (CPU, {threads} physics thread{'s' * (threads > 1)})",
-                         batch, r.env_steps_per_s, r.spread, engine="partinstruct-mjx", threads=threads)
+                         batch, r.env_steps_per_s, r.spread, engine="partinstruct-mjx", threads=threads,
+                         per_core_ratio=list(r.ratio))
                  for (batch, threads), r in ours.items()]
     elif args.suite == "demos":
         import jax

@@ -14,6 +14,11 @@ MIN_DISTANCE, GRASPING (contact forces > 20 N and a brute-force NumPy nearest-po
 positions against the part cloud, 3 mm), FACING (cloud mean vs base position) and TOUCHING's distance part (fingertip
 to part cloud, 1 cm). TOUCHING's extra `world.step()` (12 more physics steps per evaluation in the original, spec
 12 #3) is NOT done here, so the figure is generous to PyBullet.
+
+Both engines run the same commanded workload (`workload`): from home the TCP moves above the mug's handle (untimed),
+then repeats a 50-step grasp cycle, so finger contacts with force, a closed gripper and the searches that need them
+occur as in an episode. `compare` times the engines in alternating repeats (PyBullet, ours, PyBullet, ours, ...),
+so load on a shared machine affects both sides of each ratio alike.
 """
 
 from __future__ import annotations
@@ -25,6 +30,7 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
+from partinstruct_mjx.control.scripted_pick import top_down_quat
 from partinstruct_mjx.sim import panda
 from partinstruct_mjx.sim.mujoco_backend import DROP_CLEARANCE, initial_positions
 from partinstruct_mjx.sim.scene import OBJECT_PREFIX, TABLE_HEIGHT, SceneConfig, build_scene
@@ -41,6 +47,14 @@ OBJECT_MASS = 0.2
 CLOUD_POINTS = 10_000
 HOME_TCP_POS = np.array([0.5748, 0.5751, 0.3478])
 HOME_TCP_QUAT_XYZW = np.array([0.2656, 0.9591, -0.0876, -0.0446])
+GRASP_TCP_POS = np.array([0.0, 0.012, 0.146])
+"""Workload grasp: TCP over the mug_000 handle (object placed at (0, -0.03)), pads on its upper half."""
+GRASP_TCP_QUAT = top_down_quat(0.0)
+"""(w, x, y, z): approach axis down, fingers closing along x, across the handle."""
+HOVER = 0.08
+"""Height of the cycle's hover pose above the grasp pose (the open fingers clear the handle)."""
+CYCLE = 50
+APPROACH_STEPS, APPROACH_HOLD = 60, 40
 
 
 @dataclass(frozen=True)
@@ -49,6 +63,8 @@ class PyBulletResult:
     """Median over repeats (one process, one core)."""
     spread: tuple[float, float]
     """Slowest and fastest repeat, env steps/s."""
+    ratio: tuple[float, float, float] | None = None
+    """Per-core ratio to the PyBullet repeat run just before each repeat: median, lowest, highest (ours only)."""
 
 
 def _resample(points: np.ndarray, n: int, rng: np.random.Generator, jitter: float = 1e-3) -> np.ndarray:
@@ -83,7 +99,7 @@ class PyBulletScene:
         self.robot = p.loadURDF("franka_panda/panda.urdf", basePosition=panda.BASE_POS.tolist(),
                                 baseOrientation=[0, 0, 0, 1], useFixedBase=True, physicsClientId=cid,
                                 flags=p.URDF_USE_SELF_COLLISION | p.URDF_ENABLE_CACHED_GRAPHICS_SHAPES)
-        self.reset_robot()
+        self._reset_robot()
         gear = p.createConstraint(self.robot, LEFT_FINGER, self.robot, RIGHT_FINGER, p.JOINT_GEAR, [1, 0, 0],
                                   [0, 0, 0], [0, 0, 0], physicsClientId=cid)
         p.changeConstraint(gear, gearRatio=-1, erp=0.1, maxForce=50, physicsClientId=cid)
@@ -93,9 +109,17 @@ class PyBulletScene:
         self._build_object(part)
         for _ in range(settle_steps):
             self.step_physics(HOME_TCP_POS, HOME_TCP_QUAT_XYZW, panda.FINGER_OPEN, ik=False)
+        self._settled = p.getBasePositionAndOrientation(self.object, physicsClientId=cid)
 
     # ----------------------------------------------------------------------------------------------------- building
-    def reset_robot(self) -> None:
+    def reset(self) -> None:
+        """The robot at home (as built) and the object at its settled pose, both at rest."""
+        p, cid = self.p, self.client
+        self._reset_robot()
+        p.resetBasePositionAndOrientation(self.object, *self._settled, physicsClientId=cid)
+        p.resetBaseVelocity(self.object, [0, 0, 0], [0, 0, 0], physicsClientId=cid)
+
+    def _reset_robot(self) -> None:
         """Hard-set the home joints (arm + open fingers) with zero velocity and home motor targets."""
         p, cid = self.p, self.client
         for j, q in zip(ARM_JOINTS, panda.HOME_ARM_QPOS):
@@ -256,84 +280,134 @@ class PyBulletScene:
         self.close()
 
 
-def tcp_circle(steps: int, radius: float = 0.05, period_steps: int = 80) -> np.ndarray:
-    """(steps, 3) TCP targets on a horizontal circle through the home TCP (home orientation kept)."""
-    angle = 2 * np.pi * np.arange(1, steps + 1) / period_steps
-    offset = radius * np.stack([np.cos(angle) - 1.0, np.sin(angle), np.zeros_like(angle)], axis=1)
-    return HOME_TCP_POS + offset
+def approach() -> tuple[np.ndarray, np.ndarray]:
+    """Untimed lead-in of the workload: (steps, 3) TCP targets from home to the hover pose over APPROACH_STEPS,
+    then held for APPROACH_HOLD, and (steps,) finger targets (open)."""
+    hover = GRASP_TCP_POS + [0.0, 0.0, HOVER]
+    alpha = np.minimum(np.arange(1, APPROACH_STEPS + APPROACH_HOLD + 1) / APPROACH_STEPS, 1.0)[:, None]
+    return HOME_TCP_POS + alpha * (hover - HOME_TCP_POS), np.full(len(alpha), panda.FINGER_OPEN)
 
 
-def measure(steps: int = 200, repeats: int = 3, object_xml: str | Path | None = None,
-            scene: PyBulletScene | None = None) -> PyBulletResult:
-    """Env steps/s of `step_like_the_original` with the TCP sweeping a 5 cm circle; robot reset between repeats."""
-    from partinstruct_mjx import paths
+def workload(steps: int) -> tuple[np.ndarray, np.ndarray]:
+    """(steps, 3) TCP targets and (steps,) finger targets of the timed grasp cycle (orientation GRASP_TCP_QUAT).
 
-    own = scene is None
-    scene = scene or PyBulletScene(object_xml or paths.default_object_xml())
-    targets = tcp_circle(steps)
-    rates = []
-    try:
-        for _ in range(repeats):
-            scene.reset_robot()
-            start = time.perf_counter()
-            for target in targets:
-                scene.step_like_the_original(target)
-            rates.append(steps / (time.perf_counter() - start))
-    finally:
-        if own:
-            scene.close()
-    return PyBulletResult(float(np.median(rates)), (min(rates), max(rates)))
+    Each CYCLE of 50 steps: 10 open, descending from the hover pose to the grasp pose; 20 closed on the handle;
+    10 open, rising back; 10 closed in the air at the hover pose (the fingers meet, as for a touch).
+    """
+    k = np.arange(steps) % CYCLE
+    height = np.select([k < 10, k < 30, k < 40], [HOVER * (9 - k) / 10, 0.0 * k, HOVER * (k - 29) / 10], HOVER)
+    closed = ((k >= 10) & (k < 30)) | (k >= 40)
+    return GRASP_TCP_POS + height[:, None] * [0.0, 0.0, 1.0], np.where(closed, panda.FINGER_CLOSED, panda.FINGER_OPEN)
 
 
-def measure_partinstruct_env(object_xml: str | Path, batch_size: int, steps: int = 200, repeats: int = 3,
-                             num_threads: int | None = None) -> PyBulletResult:
-    """Env steps/s (B x steps / s) of our `PartInstructEnv` on the C backend holding the TCP pose (IK, physics and
-    the goal predicates every step), type-3 episode on the mug's handle; reset time is not counted."""
-    import jax
+def pybullet_rate(scene: PyBulletScene, steps: int) -> float:
+    """Env steps/s of `step_like_the_original` over the timed workload, after a reset and the untimed approach."""
+    quat = np.roll(GRASP_TCP_QUAT, -1)
+    scene.reset()
+    for target, finger in zip(*approach()):
+        scene.step_like_the_original(target, quat, finger)
+    targets, fingers = workload(steps)
+    start = time.perf_counter()
+    for target, finger in zip(targets, fingers):
+        scene.step_like_the_original(target, quat, finger)
+    return steps / (time.perf_counter() - start)
 
-    from partinstruct_mjx.env import EnvConfig, PartInstructEnv, hold_action
+
+def bench_episode():
+    """The type-3 episode our env runs (grasp the mug's handle, move it left), object at (0, -0.03)."""
     from partinstruct_mjx.tasks.episodes import Episode
     from partinstruct_mjx.tasks.task_types import task_type
 
     chain = task_type(3).build_chain({"P1": "handle"}, {"D1": "left"})
-    episode = Episode(obj_class="mug", obj_id="mug_000", ep_id=0, task_type=3, split="train", chain=tuple(chain),
-                      task_instruction="t", skill_instructions=("a", "b"), obj_pose=(0, 0, 0, 1, 0, -0.03, 0),
-                      obj_scale=1.0)
-    rates = []
-    with PartInstructEnv(object_xml, batch_size, EnvConfig(num_threads=num_threads)) as env:
-        for r in range(repeats):
-            state = env.reset(jax.random.PRNGKey(r), [episode] * batch_size)
-            action = hold_action(state.obs["tcp_pose"])
-            state = env.step(state, action)  # warm-up (compilation) outside the timing
-            jax.block_until_ready(state.obs["tcp_pose"])
-            start = time.perf_counter()
-            for _ in range(steps):
-                state = env.step(state, action)
-            jax.block_until_ready(state.metrics["success"])
-            rates.append(batch_size * steps / (time.perf_counter() - start))
-        threads = len(getattr(env.backend, "_chunks", [])) or None
-    result = PyBulletResult(float(np.median(rates)), (min(rates), max(rates)))
-    measure_partinstruct_env.last_threads = threads
-    return result
+    return Episode(obj_class="mug", obj_id="mug_000", ep_id=0, task_type=3, split="train", chain=tuple(chain),
+                   task_instruction="t", skill_instructions=("a", "b"), obj_pose=(0, 0, 0, 1, 0, -0.03, 0),
+                   obj_scale=1.0)
 
 
-def markdown(pybullet: PyBulletResult, ours: dict[tuple[int, int], PyBulletResult], object_name: str) -> str:
+def _env_actions(targets: np.ndarray, fingers: np.ndarray, batch_size: int) -> np.ndarray:
+    """(steps, B, 7) Euler actions of TCP targets at GRASP_TCP_QUAT with finger targets, the same for every scene."""
+    import jax.numpy as jnp
+
+    from partinstruct_mjx.control.rotations import quat_to_euler_xyz
+
+    euler = np.asarray(quat_to_euler_xyz(jnp.asarray(GRASP_TCP_QUAT, jnp.float32)))
+    rows = np.concatenate([targets, np.broadcast_to(euler, (len(targets), 3)), fingers[:, None]], axis=1)
+    return np.repeat(rows[:, None], batch_size, axis=1).astype(np.float32)
+
+
+def env_rate(env, steps: int, key) -> float:
+    """Env steps/s (B x steps / s) of our `PartInstructEnv` over the timed workload, after a reset and the untimed
+    approach; the type-3 episode's goals are evaluated every step."""
+    import jax
+
+    state = env.reset(key, [bench_episode()] * env.batch_size)
+    for action in _env_actions(*approach(), env.batch_size):
+        state = env.step(state, action)
+    actions = _env_actions(*workload(steps), env.batch_size)
+    jax.block_until_ready(state.metrics["success"])
+    start = time.perf_counter()
+    for action in actions:
+        state = env.step(state, action)
+    jax.block_until_ready(state.metrics["success"])
+    return env.batch_size * steps / (time.perf_counter() - start)
+
+
+def compare(object_xml: str | Path, configs: list[tuple[int, int]], steps: int = 200, repeats: int = 3
+            ) -> tuple[PyBulletResult, dict[tuple[int, int], PyBulletResult]]:
+    """PyBullet and our env at each (batch, physics threads) of `configs` on the workload, in alternating repeats:
+    every repeat of a configuration directly follows a PyBullet repeat and is compared with it."""
+    import jax
+
+    from partinstruct_mjx.env import EnvConfig, PartInstructEnv
+
+    envs = {c: PartInstructEnv(object_xml, c[0], EnvConfig(num_threads=c[1])) for c in configs}
+    pybullet, ours = [], {c: [] for c in configs}
+    try:
+        with PyBulletScene(object_xml) as scene:
+            for c, env in envs.items():
+                env_rate(env, 1, jax.random.PRNGKey(0))  # compilation outside the timing
+            for r in range(repeats):
+                for c, env in envs.items():
+                    pybullet.append(pybullet_rate(scene, steps))
+                    ours[c].append((env_rate(env, steps, jax.random.PRNGKey(r)), pybullet[-1]))
+    finally:
+        for env in envs.values():
+            env.close()
+    results = {}
+    for (batch, threads), pairs in ours.items():
+        rates = [rate for rate, _ in pairs]
+        ratios = [rate / threads / base for rate, base in pairs]
+        results[batch, threads] = PyBulletResult(float(np.median(rates)), (min(rates), max(rates)),
+                                                 (float(np.median(ratios)), min(ratios), max(ratios)))
+    return PyBulletResult(float(np.median(pybullet)), (min(pybullet), max(pybullet))), results
+
+
+def markdown(pybullet: PyBulletResult, ours: dict[tuple[int, int], PyBulletResult], object_name: str,
+             steps: int) -> str:
     """Side-by-side table: PyBullet the original's way vs our env at (batch, physics threads), per core."""
     rows = [f"| PyBullet, the original's way | 1 | 1 | {pybullet.env_steps_per_s:,.0f} | "
-            f"{pybullet.spread[0]:,.0f} - {pybullet.spread[1]:,.0f} | 1.00 |"]
+            f"{pybullet.spread[0]:,.0f} - {pybullet.spread[1]:,.0f} | 1.00 | |"]
     for (batch, threads), result in ours.items():
-        ratio = result.env_steps_per_s / threads / pybullet.env_steps_per_s
+        ratio, low, high = result.ratio
         rows.append(f"| partinstruct-mjx env (mujoco backend) | {batch} | {threads} | {result.env_steps_per_s:,.0f} | "
-                    f"{result.spread[0]:,.0f} - {result.spread[1]:,.0f} | {ratio:.2f} |")
+                    f"{result.spread[0]:,.0f} - {result.spread[1]:,.0f} | {ratio:.2f} | {low:.2f} - {high:.2f} |")
     return (
-        f"Panda + `{object_name}` (the same convex hulls in both engines). PyBullet: pybullet_data Panda, 1/240 s x 12 "
-        "substeps, 150 solver iterations, calculateInverseKinematics (20 iterations) every step, predicates on "
-        "10,000-point NumPy clouds every step (without the extra 12 physics steps the original's TOUCHING takes: "
-        "generous to PyBullet); the TCP target circles 5 cm around home. Ours: `PartInstructEnv`, 5 ms x 10 substeps, "
-        "batched JAX IK, the goals of a type-3 episode every step, holding the pose with the gripper open (the "
-        "predicates of every part row are computed at once; the contact and fingertip searches run only when some "
-        "finger presses the object or some gripper is closed, since GRASPING and TOUCHING are false otherwise, so "
-        "they do not run here, while PyBullet's way searches the fingertip distance every step). 'Physics threads' "
-        "counts MuJoCo's worker threads; XLA may run the JAX parts on the other core, so single-thread rows are an "
-        "upper bound per core. Target (DESIGN.md): >= 5x per core.\n\n| engine | batch | physics threads | env steps/s (median) | range | per-core ratio |\n"
-        "|---|---|---|---|---|---|\n" + "\n".join(rows) + "\n")
+        f"Panda + `{object_name}` (the same convex hulls in both engines). Workload, commanded identically in both "
+        f"engines: the TCP (top-down, fingers closing across the handle) moves from home to {HOVER * 100:g} cm "
+        f"above a grasp pose on the mug's handle ({APPROACH_STEPS + APPROACH_HOLD} untimed steps), then {steps} timed "
+        f"steps of a {CYCLE}-step cycle: 10 steps open descending to the grasp pose, 20 closed on the handle, 10 open "
+        "rising back, 10 closed in the air at the hover pose. The gripper is commanded closed for 30 of every 50 "
+        "steps. On ours both fingers press the handle with > 20 N on about 6 of the 20 closed steps and meet in "
+        "the air on about 5 of the 10 (the steps on which our contact and fingertip searches run; they are skipped "
+        "when GRASPING and TOUCHING are false whatever they find); in PyBullet the fingers touch the handle on about "
+        "10 steps of each cycle and GRASPING holds on about 7. PyBullet: pybullet_data Panda, 1/240 s x 12 substeps, 150 solver "
+        "iterations, calculateInverseKinematics (20 iterations) every step, predicates on 10,000-point NumPy clouds "
+        "every step (its fingertip search every step, the contact search whenever a finger touches anything; "
+        "without the extra 12 physics steps the original's TOUCHING takes: generous to PyBullet). Ours: "
+        "`PartInstructEnv`, 5 ms x 10 substeps, batched JAX IK, the goals of a type-3 episode (grasp the handle, "
+        "move it left) every step. The engines run in alternating repeats (PyBullet, then one configuration of "
+        "ours, and again); each per-core ratio is ours over the PyBullet repeat just before it, median and range "
+        "over repeats. 'Physics threads' counts MuJoCo's worker threads; XLA may run the JAX parts on the other "
+        "core, so single-thread rows are an upper bound per core. Target (DESIGN.md): >= 5x per core.\n\n"
+        "| engine | batch | physics threads | env steps/s (median) | range | per-core ratio (median) | ratio range |\n"
+        "|---|---|---|---|---|---|---|\n" + "\n".join(rows) + "\n")

@@ -78,7 +78,12 @@ class MujocoBackend:
         return self._run(self._extract_chunk)
 
     def step(self, ctrl: np.ndarray) -> SceneState:
-        """Apply actuator targets (B, 8) = 7 arm joint angles + finger opening for one control step."""
+        """Apply actuator targets (B, 8) = 7 arm joint angles + finger opening for one control step.
+
+        The returned SceneState's arrays are the backend's reusable buffers: the next `step`, `reset` or
+        `set_physics_state` overwrites them, so a caller that keeps an earlier state copies what it keeps (JAX calls
+        copy their inputs at dispatch; the oracle's recording and the evaluator's videos copy).
+        """
         ctrl = np.asarray(ctrl, dtype=float)
         if ctrl.shape != (self.batch_size, panda.NUM_CTRL):
             raise SceneError(f"ctrl must have shape ({self.batch_size}, {panda.NUM_CTRL}), got {ctrl.shape}")
