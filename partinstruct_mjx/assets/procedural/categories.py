@@ -148,14 +148,16 @@ def kitchen_pot(rng: Rng) -> tuple[Link, ...]:
         return radius + flare * z / height
 
     body = cup(outer, height, wall, floor, fillet=_u(rng, 0.004, 0.01), samples=3)
-    z_ear, half, reach = height - _u(rng, 0.012, 0.022), _u(rng, 0.02, 0.03), _u(rng, 0.022, 0.032)
+    # Ears 3-4 cm wide reaching 3.5-4.5 cm out: the pads close across an ear, clear of the wall and the lid's rim.
+    z_ear, half, reach = height - _u(rng, 0.012, 0.022), _u(rng, 0.015, 0.02), _u(rng, 0.035, 0.045)
     r_mid = outer(z_ear) - wall / 2
     ears = [loop_handle(lambda x: float(np.sqrt(r_mid ** 2 - x ** 2)), -half, half, reach, side * Y, X,
-                        np.array([0.0, 0.0, z_ear]), (_u(rng, 0.005, 0.007), _u(rng, 0.004, 0.006)))
+                        np.array([0.0, 0.0, z_ear]), (_u(rng, 0.006, 0.008), _u(rng, 0.005, 0.007)))
             for side in (1.0, -1.0)]
     r_lid, rim, rise = outer(height) + _u(rng, 0.002, 0.004), _u(rng, 0.003, 0.005), _u(rng, 0.008, 0.02)
     lid_shell = moved(dome(r_lid, rim, rise, _u(rng, 0.015, 0.02)), (0, 0, height))
-    lid_knob = moved(knob(_u(rng, 0.006, 0.009), _u(rng, 0.013, 0.02), _u(rng, 0.018, 0.028)),
+    # A knob 3-4 cm tall: the pads (3.4 cm long) close on its cap with their tips above the domed lid.
+    lid_knob = moved(knob(_u(rng, 0.006, 0.009), _u(rng, 0.013, 0.018), _u(rng, 0.03, 0.04)),
                      (0, 0, height + rim + rise - 0.0005))
     lid_colour = colour(rng, "glass") if rng.random() < 0.4 else colour(rng, "metal")
     lid = Part("lid", (Piece(lid_shell, lid_colour), Piece(lid_knob, colour(rng, "rubber"))))
@@ -375,7 +377,9 @@ def scissors(rng: Rng) -> tuple[Link, ...]:
     total = _u(rng, 0.14, 0.21)
     blade_len, t, width = total * _u(rng, 0.48, 0.56), _u(rng, 0.0015, 0.0025), _u(rng, 0.010, 0.016)
     ring_a, ring_b, tube_w = _u(rng, 0.012, 0.018), _u(rng, 0.009, 0.013), _u(rng, 0.0025, 0.0035)
-    tube_h = max(_u(rng, 0.0025, 0.0035), t + 0.0003)
+    # Moulded finger rings 12-16 mm tall (the blades lie between them): a parallel gripper pinches a ring from above
+    # with its pads clear of the table, which a 2-3 mm flat pair of scissors would not allow.
+    tube_h = _u(rng, 0.006, 0.008)
     root = 0.01
     ring_x = total - blade_len - ring_a - tube_w
     shank_w, exponent = _u(rng, 0.006, 0.009), _u(rng, 2.0, 2.6)
@@ -442,7 +446,8 @@ def _slotted_handle(rng: Rng, length: float, width: float, scale: float, gap: fl
 
 def knife(rng: Rng) -> tuple[Link, ...]:
     """Folding knife (rotation blade on a hinge) or utility knife (translation blade on a slider)."""
-    scale, gap = _u(rng, 0.003, 0.0045), _u(rng, 0.003, 0.004)
+    # Handle scales 4.5-6 mm thick: the handle lying flat stands 12-16 mm tall, enough for the pads to pinch it.
+    scale, gap = _u(rng, 0.0045, 0.006), _u(rng, 0.003, 0.004)
     z_mid = scale + gap / 2
     handle_rgb, steel = colour(rng, "wood" if rng.random() < 0.5 else "plastic"), colour(rng, "metal")
     if rng.random() < 0.5:
