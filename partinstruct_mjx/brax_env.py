@@ -37,7 +37,7 @@ from partinstruct_mjx.sim.mujoco_backend import MujocoBackend
 from partinstruct_mjx.sim.scene import build_scene
 from partinstruct_mjx.sim.state import SceneState
 from partinstruct_mjx.tasks import progress
-from partinstruct_mjx.tasks.part_geometry import load_part_geometry
+from partinstruct_mjx.tasks.part_geometry import load_parts
 
 OBS_LAYOUT = (("tcp_pose", 7), ("joint_states", 7), ("gripper_state", 1), ("skill_one_hot", progress.MAX_SKILLS))
 """Name and width of each block of the flat observation, in order."""
@@ -129,9 +129,9 @@ class BraxPartInstructEnv(Env):
         self.episode_length = max(STEP_LIMIT_TEST4 if e.split == "test4" else STEP_LIMIT for e in episodes)
         """The longest step limit among the episodes (250, or 400 with test4): EpisodeWrapper's episode_length."""
         self.scene = build_scene(replace(config.scene, object_xml=str(object_xml)))
-        self.geometry = load_part_geometry(self.scene)
+        self.geometry, self.part_names = load_parts(self.scene)
         self.kinematics = jax_ik.ArmKinematics.from_scene(self.scene)
-        compiled = progress.compile_episodes([(e.task_type, list(e.chain)) for e in episodes], self.geometry)
+        compiled = progress.compile_episodes([(e.task_type, list(e.chain)) for e in episodes], self.part_names)
         self._compiled = jax.tree.map(jnp.asarray, compiled)
         self.model = mjx.put_model(self.scene.model)
         self._indices = scene_indices(self.scene)

@@ -24,7 +24,7 @@ from partinstruct_mjx.sim import panda
 from partinstruct_mjx.sim.scene import SceneConfig, build_scene
 from partinstruct_mjx.sim.state import SceneState
 from partinstruct_mjx.tasks import progress
-from partinstruct_mjx.tasks.part_geometry import load_part_geometry
+from partinstruct_mjx.tasks.part_geometry import load_parts
 
 STEP_LIMIT = 250
 STEP_LIMIT_TEST4 = 400
@@ -81,7 +81,7 @@ class PartInstructEnv:
         self.config = config
         self.scene = build_scene(replace(config.scene, object_xml=str(object_xml)))
         self.batch_size = batch_size
-        self.geometry = load_part_geometry(self.scene)
+        self.geometry, self.part_names = load_parts(self.scene)
         self.kinematics = jax_ik.ArmKinematics.from_scene(self.scene)
         if config.backend == "mujoco":
             from partinstruct_mjx.sim.mujoco_backend import MujocoBackend
@@ -115,7 +115,7 @@ class PartInstructEnv:
         """
         if len(episodes) != self.batch_size:
             raise TaskError(f"reset needs {self.batch_size} episodes, got {len(episodes)}")
-        compiled = progress.compile_episodes([(e.task_type, list(e.chain)) for e in episodes], self.geometry)
+        compiled = progress.compile_episodes([(e.task_type, list(e.chain)) for e in episodes], self.part_names)
         poses = np.array([e.obj_pose for e in episodes], dtype=float)
         if poses.shape != (self.batch_size, 7):
             raise TaskError(f"obj_pose must be [qx, qy, qz, qw, x, y, z]; got shape {poses.shape[1:]}")
@@ -128,13 +128,13 @@ class PartInstructEnv:
         for b, episode in enumerate(episodes):
             for s, step in enumerate(episode.chain):
                 if step.part is not None:
-                    self._target_rows[b, s] = self.geometry.index(step.part)
-        task = self._initial(data, self.geometry, compiled)
+                    self._target_rows[b, s] = self.part_names.index(step.part)
+        task = self._initial(data.for_jit(), self.geometry, compiled)
         limits = np.array([STEP_LIMIT_TEST4 if e.split == "test4" else STEP_LIMIT for e in episodes], np.int32)
         info = {"steps": jnp.zeros(self.batch_size, jnp.int32), "step_limit": jnp.asarray(limits),
                 "truncated": jnp.zeros(self.batch_size, bool),
                 "joint_targets": jnp.asarray(data.arm_qpos, jnp.float32)}
-        return _assemble(data, task, info, _outputs(data, task, info))
+        return _assemble(data, task, info, _outputs(data.for_jit(), task, info))
 
     def step(self, state: State, action) -> State:
         """Apply one (B, 7) Euler or (B, 8) quaternion action to every scene for one 20 Hz step."""
@@ -145,7 +145,7 @@ class PartInstructEnv:
                             f"rotation='{self.config.rotation}', got {tuple(action.shape)}")
         ctrl = joint_targets(self.kinematics, self.config.ik, state.info["joint_targets"], action)
         data = self.backend.step(np.asarray(ctrl) if self.config.backend == "mujoco" else ctrl)
-        changed, info, outputs = _advance(state.task, state.info, state.done, data, self.geometry, ctrl,
+        changed, info, outputs = _advance(state.task, state.info, state.done, data.for_jit(), self.geometry, ctrl,
                                           self.config.skill_mode)
         return _assemble(data, state.task.replace(**changed), {**state.info, **info}, outputs)
 
@@ -189,7 +189,7 @@ class PartInstructEnv:
         from partinstruct_mjx.obs.images import ImageRenderer
 
         if self._renderer is None:
-            self._renderer = ImageRenderer(self.scene, geometry=self.geometry)
+            self._renderer = ImageRenderer(self.scene, parts=(self.geometry, self.part_names))
         parts = self.target_parts(state)
         return [camera_observations(self._renderer, jax.tree_util.tree_map(lambda x: x[b], state.data),
                                     None if parts[b] < 0 else int(parts[b]), state.task.masks[b], wrist)

@@ -125,7 +125,7 @@ def test_camera_and_point_cloud_observations_mark_the_target_part(env):
     """Skill 0 grasps the handle: both paths mark handle points and pixels, with spec 2.1's keys and shapes; a move
     skill has no target part."""
     state = env.reset(jax.random.PRNGKey(0), [_episode(3), _episode(5)])
-    assert list(env.target_parts(state)) == [env.geometry.index("handle")] * 2
+    assert list(env.target_parts(state)) == [env.part_names.index("handle")] * 2
     clouds = env.point_clouds(state, jax.random.PRNGKey(1))
     assert clouds["agentview_pcd"].shape == (2, 1024, 3) and clouds["agentview_part_pcd"].shape == (2, 1024, 4)
     assert np.asarray(clouds["agentview_part_pcd"][..., 3]).sum() > 0

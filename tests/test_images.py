@@ -60,7 +60,7 @@ def _with_object_yaw(scene, row, yaw):
 
 
 def test_observation_keys_shapes_and_dtypes(renderer, settled):
-    part = renderer.geometry.index("handle")
+    part = renderer.part_names.index("handle")
     obs = camera_observations(renderer, settled, part, _masks(settled, renderer), wrist=True)
     expected = {
         "agentview_rgb": ((300, 300, 3), np.uint8), "agentview_pcd": ((PCD_SIZE, 3), np.float32),
@@ -112,7 +112,7 @@ def test_handle_mask_is_occluded_behind_the_body(renderer, mug_scene, settled):
     data = np.load(MUG.parent / "parts.npz")
     handle = data["points"][list(data["part_names"]).index("handle")].mean(axis=0)
     facing = np.arctan2(handle[1], handle[0])
-    part, masks = renderer.geometry.index("handle"), _masks(settled, renderer)
+    part, masks = renderer.part_names.index("handle"), _masks(settled, renderer)
     counts = {}
     for name, direction in (("front", np.pi), ("back", 0.0)):  # the camera looks along +x: front faces it
         images = renderer.render(_with_object_yaw(mug_scene, settled, direction - facing))
@@ -126,17 +126,17 @@ def test_spatial_and_whole_object_masks(renderer, settled):
     on_object = _on_object(renderer, images.segmentation)
     whole = renderer.part_mask(images, geo.whole, masks)
     np.testing.assert_array_equal(whole.astype(bool), on_object)
-    counts = {w: renderer.part_mask(images, geo.index(w), masks).sum() for w in ("front", "back", "left", "right")}
+    counts = {w: renderer.part_mask(images, renderer.part_names.index(w), masks).sum() for w in ("front", "back", "left", "right")}
     assert counts["front"] > counts["back"]  # 'front' is -x, towards the camera (spec 3.1)
     for word in ("left", "right"):
-        mask = renderer.part_mask(images, geo.index(word), masks).astype(bool)
+        mask = renderer.part_mask(images, renderer.part_names.index(word), masks).astype(bool)
         assert mask.any() and not (mask & ~on_object).any()
     assert not renderer.part_mask(images, None, masks).any()
 
 
 def test_part_column_matches_the_mask(renderer, settled):
     geo, masks = renderer.geometry, _masks(settled, renderer)
-    for part in (geo.index("body"), geo.index("front")):
+    for part in (renderer.part_names.index("body"), renderer.part_names.index("front")):
         obs = camera_observations(renderer, settled, part, masks)
         cloud = obs["agentview_part_pcd"]
         pixels = np.floor(np.asarray(project(cloud[:, :3], obs["agentview_intrinsics"]))).astype(int)

@@ -8,6 +8,7 @@ from partinstruct_mjx.errors import SceneError
 from partinstruct_mjx.sim import panda
 from partinstruct_mjx.sim.mujoco_backend import MujocoBackend
 from partinstruct_mjx.sim.scene import TABLE_HEIGHT, random_placements
+from partinstruct_mjx.sim.state import body_rows
 
 
 def _placements(batch, seed=0):
@@ -65,7 +66,10 @@ def test_state_shapes_and_poses_agree_with_qpos(scene):
     with MujocoBackend(scene, 3) as backend:
         state = backend.reset()
     m = scene.model
-    assert state.qpos.shape == (3, m.nq) and state.body_pos.shape == (3, m.nbody, 3)
+    rows = body_rows(m.nbody)
+    assert state.qpos.shape == (3, m.nq) and state.body_pos.shape == (3, rows, 3) and rows % 8 == 0
+    # Padding rows past the model's bodies hold the origin and the identity rotation.
+    assert (state.body_pos[:, m.nbody:] == 0).all() and (state.body_quat[:, m.nbody:] == [1, 0, 0, 0]).all()
     assert state.contact_pos.shape == (3, 2, 8, 3) and state.contact_geom.dtype == np.int32
     adr = scene.object_qpos_adr  # poses come from the last substep's forward pass, one 5 ms step behind qpos
     np.testing.assert_allclose(state.object_pos, state.qpos[:, adr:adr + 3], atol=1e-6)

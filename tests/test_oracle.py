@@ -8,7 +8,7 @@ import pytest
 from partinstruct_mjx.assets.catalog import load_catalog
 from partinstruct_mjx.control.rotations import quat_rotate
 from partinstruct_mjx.env import EnvConfig, PartInstructEnv
-from partinstruct_mjx.oracle import candidates, machine
+from partinstruct_mjx.oracle import candidates, machine, pushing
 from partinstruct_mjx.oracle.rollout import OraclePolicy, run_oracle
 from partinstruct_mjx.paths import assets_root
 from partinstruct_mjx.tasks import predicates
@@ -32,7 +32,7 @@ def _clouds(env, state, part_name):
     data = jax.tree_util.tree_map(lambda x: jnp.asarray(x)[0], state.data)
     geo = env.geometry
     world = predicates.world_clouds(data, geo)
-    part = geo.index(part_name)
+    part = env.part_names.index(part_name)
     masks = state.task.masks[0]
     part_points, part_valid = predicates.part_cloud(data, geo, masks, part, world)
     whole = geo.whole
@@ -60,7 +60,7 @@ def test_grasp_candidates_close_on_the_part(episodes):
     assert abs(float(np.dot(grasps["approach"][best], grasps["closing"][best]))) < 1e-4
 
 
-def test_touch_before_a_push_comes_from_behind(episodes):
+def test_touch_before_a_push_comes_from_behind_first(episodes):
     episode = next(e for e in episodes if e.task_type == 4)
     push = episode.chain[1].direction
     with _env(episode) as env:
@@ -68,17 +68,19 @@ def test_touch_before_a_push_comes_from_behind(episodes):
         points, _, valid, part_points, _, part_valid = _clouds(env, state, episode.chain[0].part)
         side = -direction_vector(push).astype(np.float32)
         _, axis, score = candidates.touch_candidates(points, valid, part_points, part_valid, jnp.asarray(side))
-    usable = np.isfinite(np.asarray(score))
+    score = np.asarray(score)
+    usable = np.isfinite(score)
     assert usable.any()
-    # Every usable touch points the fingertip along the push (its horizontal component).
-    horizontal = np.asarray(axis)[usable] @ direction_vector(push)
-    assert (horizontal > 0.3).all()
+    # Touches that point the fingertip along the push (its horizontal component) rank first; others stay usable.
+    horizontal = np.asarray(axis) @ direction_vector(push)
+    along = usable & (horizontal > 0.3)
+    assert along.any() and score[along].min() > score[usable & ~along].max(initial=-np.inf)
 
 
 def test_compile_chains_marks_pushes_and_table_turns(episodes):
     episode = next(e for e in episodes if e.task_type == 14)
     with _env(episode) as env:
-        chains = machine.compile_chains([episode], env.geometry)
+        chains = machine.compile_chains([episode], env.part_names)
     kinds = [machine.SKILL_KINDS[s.name] for s in episode.chain]
     assert chains["kind"][0, : len(kinds)].tolist() == kinds
     assert chains["num_skills"][0] == 5
@@ -144,17 +146,23 @@ def test_oracle_follows_a_skill_mode_env_through_chained_moves(episodes):
     np.testing.assert_allclose(oracle_p0, np.asarray(state.task.skill_p0[0]), atol=1e-6)
 
 
-def test_push_pose_presses_low_on_the_face_opposite_the_push(episodes):
+def test_push_point_presses_low_on_the_face_opposite_the_push_near_the_middle(episodes):
     episode = next(e for e in episodes if e.obj_class == "bottle" and e.task_type == 4)
     direction = direction_vector(episode.chain[1].direction).astype(np.float32)
     with _env(episode) as env:
         state = env.reset(jax.random.PRNGKey(0), [episode])
         data = jax.tree_util.tree_map(lambda x: jnp.asarray(x)[0], state.data)
-        pos, quat, _ = machine._push_pose(data, env.geometry, jnp.asarray(direction))
-    tip = np.asarray(pos + predicates.FINGERTIP_OFFSET * quat_rotate(quat, jnp.array([0.0, 0.0, 1.0])))
-    centre = np.asarray(data.object_pos)
-    # The fingertip sits low (a few cm above the table), behind the object as seen along the push, near its axis.
-    assert candidates.TABLE_HEIGHT + machine.PUSH_HEIGHT - 1e-3 < tip[2] < candidates.TABLE_HEIGHT + 0.06
-    assert (tip - centre) @ direction < -0.015
-    lateral = (tip - centre) - ((tip - centre) @ direction) * direction
+        world = predicates.world_clouds(data, env.geometry)
+        whole = env.geometry.whole
+        _, _, _, part_points, _, part_valid = _clouds(env, state, episode.chain[0].part)
+        point, found = pushing.push_point(part_points, part_valid, world[whole], env.geometry.valid[whole],
+                                          jnp.asarray(direction))
+    assert bool(found)
+    point, centre = np.asarray(point), np.asarray(data.object_pos)
+    bottom = float(np.asarray(world[whole])[:, 2].min())
+    # Low enough that the push cannot tip the bottle (about 3 cm from its centre to its leading edge), behind the
+    # object as seen along the push, close to the line through its middle.
+    assert bottom + pushing.TIP_CLEARANCE <= point[2] <= bottom + 0.045
+    assert (point - centre) @ direction < -0.015
+    lateral = (point - centre) - ((point - centre) @ direction) * direction
     assert np.linalg.norm(lateral[:2]) < 0.02

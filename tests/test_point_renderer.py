@@ -22,7 +22,7 @@ from partinstruct_mjx.obs.images import ImageRenderer, backproject
 from partinstruct_mjx.paths import assets_root
 from partinstruct_mjx.sim.mujoco_backend import MujocoBackend
 from partinstruct_mjx.sim.scene import SceneConfig, build_scene
-from partinstruct_mjx.tasks.part_geometry import load_part_geometry, world_points
+from partinstruct_mjx.tasks.part_geometry import load_parts, world_points
 
 OBJECTS = {"mug/mug_000": 0.7, "bottle/bottle_000": 2.5, "laptop/laptop_000": 4.0}
 """Objects and their yaws (rad)."""
@@ -33,10 +33,12 @@ class Rendered:
 
     def __init__(self, name: str, yaw: float):
         scene = build_scene(SceneConfig(object_xml=str(assets_root() / "objects" / name / "object.xml")))
-        self.geometry = geo = load_part_geometry(scene)
+        parts = load_parts(scene)
+        self.geometry = geo = parts[0]
+        self.names = parts[1]
         with MujocoBackend(scene, 1) as backend:
             state = backend.reset(np.array([[0.0, -0.03]]), np.array([[np.cos(yaw / 2), 0, 0, np.sin(yaw / 2)]]))
-        with ImageRenderer(scene, geometry=geo) as renderer:
+        with ImageRenderer(scene, parts=parts) as renderer:
             images = renderer.render(state.qpos[0], AGENTVIEW, rgb=False)
             keep = renderer.robot_or_object(images.segmentation)
             rows, cols = np.nonzero(keep)
@@ -48,7 +50,7 @@ class Rendered:
         self.images = images
         self.camera = scene_camera(scene, AGENTVIEW)
         self.surface = point_renderer.surface_points(scene, geo)
-        parts = np.arange(geo.num_semantic)
+        parts = np.arange(len(self.names.semantic))
         self.masks = jnp.asarray(np.asarray(self.surface.object_part) == parts[:, None])
         self.body_pos = jnp.tile(jnp.asarray(images.body_pos, jnp.float32), (len(parts), 1, 1))
         self.body_quat = jnp.tile(jnp.asarray(images.body_quat, jnp.float32), (len(parts), 1, 1))
@@ -106,7 +108,7 @@ def test_target_part_labels_match_the_segmentation(rendered):
     """Each batch row targets one semantic part; a point's label must equal that of its nearest object/robot pixel."""
     nearest = cKDTree(rendered.pixels).query(np.asarray(rendered.cloud.world).reshape(-1, 3))[1]
     reference = rendered.pixel_part[nearest].reshape(rendered.cloud.target.shape)
-    parts = np.arange(rendered.geometry.num_semantic)[:, None]
+    parts = np.arange(len(rendered.names.semantic))[:, None]
     agree = (np.asarray(rendered.cloud.target) > 0.5) == (reference == parts)
     assert agree.mean(axis=1).min() > 0.9
     # On the object alone: disagreements are mostly where collision hulls (parts.npz) and visual meshes differ.
@@ -143,7 +145,7 @@ def test_surface_points_and_target_masks(rendered):
     assert surface.num_object == int(geo.valid[geo.whole].sum())
     assert (np.asarray(surface.object_part) >= 0).all()  # every piece of these objects is in a semantic part
     masks = jnp.zeros((7, surface.num_object), bool).at[2, :5].set(True)
-    for part in range(geo.num_semantic):
+    for part in range(len(rendered.names.semantic)):
         semantic = np.asarray(point_renderer.target_mask(surface, geo, masks, jnp.int32(part)))
         np.testing.assert_array_equal(semantic, np.asarray(surface.object_part) == part)
         assert 0 < semantic.sum() < surface.num_object

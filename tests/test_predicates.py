@@ -10,7 +10,7 @@ from partinstruct_mjx.errors import TaskError
 from partinstruct_mjx.sim.mujoco_backend import MujocoBackend
 from partinstruct_mjx.sim.scene import SceneConfig, build_scene
 from partinstruct_mjx.tasks import predicates, progress
-from partinstruct_mjx.tasks.part_geometry import load_part_geometry, spatial_masks
+from partinstruct_mjx.tasks.part_geometry import load_parts, spatial_masks
 from partinstruct_mjx.tasks.task_types import TASK_TYPES, task_type
 from partinstruct_mjx.tasks.vocabulary import DIRECTIONS, UNIT_DISTANCE, direction_vector
 
@@ -24,12 +24,12 @@ class World:
 
     def __init__(self):
         self.scene = build_scene(SceneConfig(object_xml=str(MUG)))
-        self.geo = load_part_geometry(self.scene)
+        self.geo, self.names = load_parts(self.scene)
         with MujocoBackend(self.scene, 1) as backend:
             self.base = jax.tree_util.tree_map(lambda x: np.array(x[0]), backend.reset())
         self.origin = self.base.object_pos.copy()
         geoms = np.asarray(self.geo.geom_part)
-        self.part_geom = {name: int(np.flatnonzero(geoms == i)[0]) for i, name in enumerate(self.geo.names)
+        self.part_geom = {name: int(np.flatnonzero(geoms == i)[0]) for i, name in enumerate(self.names.semantic)
                           if (geoms == i).any()}
 
     def state(self, offset=(0.0, 0.0, 0.0), rotation=Rotation.identity(), grasp=None, touch=None,
@@ -58,13 +58,13 @@ class World:
 
     def part_point(self, s, part, masks=None):
         masks = spatial_masks(predicates.object_points(s, self.geo)) if masks is None else masks
-        points, valid = predicates.part_cloud(s, self.geo, masks, self.geo.index(part))
+        points, valid = predicates.part_cloud(s, self.geo, masks, self.names.index(part))
         points, valid = np.asarray(points), np.asarray(valid)
         return points[valid].mean(axis=0) if part in ("handle", "body") else points[valid][0]
 
     def part_vector(self, s, part):
         masks = spatial_masks(predicates.object_points(s, self.geo))
-        points, valid = predicates.part_cloud(s, self.geo, masks, self.geo.index(part))
+        points, valid = predicates.part_cloud(s, self.geo, masks, self.names.index(part))
         return np.asarray(points)[np.asarray(valid)].mean(axis=0) - s.object_pos
 
 
@@ -83,7 +83,7 @@ def test_on_table_and_lifted(world):
 
 
 def test_grasping_needs_force_and_the_named_part(world):
-    geo, index = world.geo, world.geo.index
+    geo, index = world.geo, world.names.index
     s = world.state(grasp="handle")
     masks = _masks(world, s)
     assert predicates.grasping(s, geo, masks, index("handle"))
@@ -98,19 +98,19 @@ def test_grasping_a_spatial_part_uses_contact_positions(world):
     geo = world.geo
     s = world.state(grasp="left")
     masks = _masks(world, s)
-    assert predicates.grasping(s, geo, masks, geo.index("left"))
-    assert not predicates.grasping(s, geo, masks, geo.index("right"))
+    assert predicates.grasping(s, geo, masks, world.names.index("left"))
+    assert not predicates.grasping(s, geo, masks, world.names.index("right"))
 
 
 def test_touching_needs_closed_fingers_near_the_part(world):
     geo = world.geo
     s = world.state(touch="handle")
     masks = _masks(world, s)
-    assert predicates.touching(s, geo, masks, geo.index("handle"))
+    assert predicates.touching(s, geo, masks, world.names.index("handle"))
     opened = s.replace(finger_qpos=np.array([0.02, 0.02]))
-    assert not predicates.touching(opened, geo, masks, geo.index("handle"))
+    assert not predicates.touching(opened, geo, masks, world.names.index("handle"))
     far = s.replace(tcp_pos=s.tcp_pos + [0.0, 0.0, 0.05])
-    assert not predicates.touching(far, geo, masks, geo.index("handle"))
+    assert not predicates.touching(far, geo, masks, world.names.index("handle"))
 
 
 @pytest.mark.parametrize("direction", ["left", "right", "front", "back"])
@@ -120,7 +120,7 @@ def test_facing_each_direction(world, direction):
     s = world.state(rotation=Rotation.from_euler("z", turn))
     masks = _masks(world, s)
     for other in ("left", "right", "front", "back", "top", "bottom"):
-        result = predicates.facing(s, world.geo, masks, world.geo.index("handle"), direction_vector(other))
+        result = predicates.facing(s, world.geo, masks, world.names.index("handle"), direction_vector(other))
         assert bool(result) == (other == direction), other
 
 
@@ -150,15 +150,15 @@ def test_spatial_parts_lie_on_their_side(world):
 
 def test_unknown_part_direction_and_task_type_are_named(world):
     with pytest.raises(TaskError, match="unknown part 'wheel'"):
-        world.geo.index("wheel")
+        world.names.index("wheel")
     with pytest.raises(TaskError, match="unknown direction 'up'"):
         direction_vector("up")
     with pytest.raises(TaskError, match="task type '17' is out of range"):
         task_type("17")
     with pytest.raises(TaskError, match="unknown part 'wheel'"):
-        progress.compile_episodes([(1, task_type(1).build_chain({"P1": "wheel"}, {}))], world.geo)
+        progress.compile_episodes([(1, task_type(1).build_chain({"P1": "wheel"}, {}))], world.names)
     with pytest.raises(TaskError, match="does not fit task type 3"):
-        progress.compile_episodes([(3, task_type(1).build_chain({"P1": "handle"}, {}))], world.geo)
+        progress.compile_episodes([(3, task_type(1).build_chain({"P1": "handle"}, {}))], world.names)
 
 
 SLOTS = {"P1": "handle", "P2": "handle", "P3": "body"}
@@ -205,7 +205,7 @@ def _script(world, chain):
 @pytest.mark.parametrize("type_id", sorted(TASK_TYPES))
 def test_every_task_type_succeeds_in_skill_and_task_mode_on_its_script(world, type_id):
     chain = task_type(type_id).build_chain(SLOTS, _directions(type_id))
-    compiled = progress.compile_episodes([(type_id, chain)], world.geo)
+    compiled = progress.compile_episodes([(type_id, chain)], world.names)
     stack = lambda s: jax.tree_util.tree_map(lambda x: x[None], s)  # noqa: E731
     start = stack(world.state())
     skill = task = INITIAL(start, world.geo, compiled)
@@ -223,7 +223,7 @@ def test_every_task_type_succeeds_in_skill_and_task_mode_on_its_script(world, ty
 def test_task_mode_two_phases_complete_in_order(world):
     """Type 5: slide then release; the release alone (phase 2 before phase 1) is not success."""
     chain = task_type(5).build_chain({"P1": "handle"}, {"D1": "left"})
-    compiled = progress.compile_episodes([(5, chain)], world.geo)
+    compiled = progress.compile_episodes([(5, chain)], world.names)
     stack = lambda s: jax.tree_util.tree_map(lambda x: x[None], s)  # noqa: E731
     task = INITIAL(stack(world.state()), world.geo, compiled)
     task = UPDATE(task, stack(world.state()), world.geo, skill_mode=False)
@@ -243,7 +243,7 @@ def _reference_facts(state, geo, masks):
         return (predicates.grasping(state, geo, masks, part), predicates.touching(state, geo, masks, part),
                 predicates.masked_mean(points, valid))
 
-    grasped, touched, centers = jax.vmap(row)(jax.numpy.arange(len(geo.names)))
+    grasped, touched, centers = jax.vmap(row)(jax.numpy.arange(geo.points.shape[0]))
     return grasped, touched, centers, predicates.on_table(state, geo)
 
 

@@ -19,7 +19,7 @@ from partinstruct_mjx.obs.cameras import AGENTVIEW, Camera, scene_camera
 from partinstruct_mjx.sim.mujoco_backend import MujocoBackend
 from partinstruct_mjx.sim.scene import Scene
 from partinstruct_mjx.sim.state import SceneState
-from partinstruct_mjx.tasks.part_geometry import PartGeometry, load_part_geometry
+from partinstruct_mjx.tasks.part_geometry import PartGeometry, PartNames, load_parts
 
 
 @dataclass(frozen=True)
@@ -56,12 +56,12 @@ def measure(scene: Scene, batch_sizes: tuple[int, ...] = (1, 16, 256), repeats: 
     """Clouds/s of `render_batch` per sampler and batch size (each repeat renders >= `min_clouds` clouds), and of the
     OpenGL path for `gl_clouds` scenes. The scene's object needs a parts.npz (the built-in test block has none); the
     scene is reset once and its settled poses are rendered. On a GPU, batches of 1,024-16,384 saturate an H100."""
-    geometry = load_part_geometry(scene)
+    geometry, names = load_parts(scene)
     surface = point_renderer.surface_points(scene, geometry, seed=seed)
     camera = scene_camera(scene, AGENTVIEW)
     with MujocoBackend(scene, 1) as backend:
         state = backend.reset()
-    gl, gl_error = _measure_gl(scene, geometry, jax.tree_util.tree_map(lambda x: x[0], state), gl_clouds)
+    gl, gl_error = _measure_gl(scene, (geometry, names), jax.tree_util.tree_map(lambda x: x[0], state), gl_clouds)
     speed = [_measure_jax(surface, camera, state, size, sampler, repeats, min_clouds, seed)
              for sampler in samplers for size in batch_sizes]
     device = jax.devices()[0]
@@ -83,7 +83,7 @@ def _measure_jax(surface: point_renderer.SurfacePoints, camera: Camera, state: S
     return JaxResult(sampler, batch_size, timing)
 
 
-def _measure_gl(scene: Scene, geometry: PartGeometry, state_row: SceneState,
+def _measure_gl(scene: Scene, parts: tuple[PartGeometry, PartNames], state_row: SceneState,
                 clouds: int) -> tuple[GLResult | None, str]:
     """Time the OpenGL observation path (`obs/images.py`, `obs/depth_cloud.py`) on one settled scene; (None, reason)
     where no OpenGL context can be made."""
@@ -91,7 +91,7 @@ def _measure_gl(scene: Scene, geometry: PartGeometry, state_row: SceneState,
     from partinstruct_mjx.obs.images import ImageRenderer
 
     try:
-        renderer = ImageRenderer(scene, geometry=geometry)
+        renderer = ImageRenderer(scene, parts=parts)
     except Exception as err:  # noqa: BLE001 - any GL failure (no EGL, no display) means "not measured"
         return None, f"{type(err).__name__}: {err}".splitlines()[0]
     with renderer:

@@ -26,7 +26,7 @@ from partinstruct_mjx.errors import SceneError
 from partinstruct_mjx.obs.cameras import AGENTVIEW, IMAGE_SIZE, WRIST, camera_pose, optical_to_world, scene_camera
 from partinstruct_mjx.sim.scene import Scene
 from partinstruct_mjx.sim.state import SceneState
-from partinstruct_mjx.tasks.part_geometry import PartGeometry, load_part_geometry
+from partinstruct_mjx.tasks.part_geometry import PartGeometry, PartNames, load_parts
 from partinstruct_mjx.tasks.predicates import part_cloud
 
 _CHEAP_FLAGS_OFF = (mujoco.mjtRndFlag.mjRND_SHADOW, mujoco.mjtRndFlag.mjRND_REFLECTION,
@@ -85,9 +85,9 @@ class ImageRenderer:
     """
 
     def __init__(self, scene: Scene, width: int = IMAGE_SIZE, height: int = IMAGE_SIZE,
-                 geometry: PartGeometry | None = None):
+                 parts: tuple[PartGeometry, PartNames] | None = None):
         self.scene = scene
-        self._geometry = geometry
+        self._parts = parts
         self.width, self.height = width, height
         model = copy.copy(scene.model)
         model.vis.quality.offsamples = 0
@@ -120,9 +120,15 @@ class ImageRenderer:
     @property
     def geometry(self) -> PartGeometry:
         """Part clouds of the object, loaded when a part mask first needs them (objects without parts.npz render)."""
-        if self._geometry is None:
-            self._geometry = load_part_geometry(self.scene)
-        return self._geometry
+        if self._parts is None:
+            self._parts = load_parts(self.scene)
+        return self._parts[0]
+
+    @property
+    def part_names(self) -> PartNames:
+        """The labels of `geometry`'s rows."""
+        self.geometry  # noqa: B018 (loads the parts)
+        return self._parts[1]
 
     @functools.cached_property
     def _part_of_pixel(self) -> np.ndarray:

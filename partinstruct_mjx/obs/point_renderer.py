@@ -285,6 +285,8 @@ def _object_parts(geometry: PartGeometry, points: np.ndarray, bodies: np.ndarray
     spacing = np.zeros(k)
     for row in range(k):
         valid = np.asarray(geometry.valid[row])
+        if not valid.any():  # padding row (PartGeometry keeps room for more semantic parts)
+            continue
         row_points, row_bodies = np.asarray(geometry.points[row])[valid], np.asarray(geometry.bodies[row])[valid]
         spacing[row] = np.median(cKDTree(row_points).query(row_points, k=2)[0][:, 1])
         for body in np.unique(row_bodies):

@@ -128,7 +128,7 @@ def _frame(renderer: ImageRenderer, trajectory: Trajectory, step: int, camera: s
         return images.rgb
     geometry = renderer.geometry
     try:
-        row = geometry.index(part)
+        row = renderer.part_names.index(part)
     except PartInstructError as err:
         raise SceneError(f"{trajectory.source}: step {step}: {err}") from None
     # Spatial parts as sampled from this step's pose (the env samples them when a skill starts).

@@ -17,6 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from partinstruct_mjx.control.rotations import matrix_to_quat
+from partinstruct_mjx.oracle import pushing as pushing_module
 from partinstruct_mjx.sim.scene import TABLE_HEIGHT
 from partinstruct_mjx.tasks.predicates import masked_mean
 
@@ -37,16 +38,23 @@ HAND_HALF_LENGTH = 0.12
 TABLE_CLEARANCE = 0.002
 TIP_CLEARANCE = 0.006
 """Free space the open pads' tips keep from the table and from the object surface ahead of them."""
-GRASP_DEPTH = 0.012
-"""How far past the seed surface point the pads' middle goes along the approach."""
+MIN_DEPTH = 0.01
+MAX_DEPTH = 0.025
+"""The pads' middle goes this far past the first surface along the approach at least and at most (the palm is
+3.1 cm behind it); between the two it sits in the middle of the section along the approach, so that the pads
+close across the widest chord of a round part instead of pinching near its edge."""
 PREGRASP_DISTANCE = 0.08
 LINE_RADIUS = 0.008
 CONTACT_BAND = 0.004
 """Points this close to either end of the closed-on section are where a pad lands."""
-MIN_ANTIPODAL = 0.5
+MIN_ANTIPODAL = 0.9
+"""Smallest mean cosine between the landing surfaces' normals and the pads' pushing directions (26 degrees of tilt:
+a squeeze on a more tilted surface pushes the part out of the pads)."""
 PARALLEL_FACE = 0.3
 """Surface points whose normal's cosine with the closing axis is below this are left out of the antipodal test."""
-"""Smallest mean cosine between the landing surfaces' normals and the pads' pushing directions."""
+TOP_DOWN_WEIGHT = 0.4
+"""Score per unit of the approach pointing down (a yaw turn on the table needs the hand above the object: the
+planner raises it for those chains)."""
 OFF_CENTRE_WEIGHT = 10.0
 """Score lost per metre between the grasp and the object's middle (horizontally)."""
 
@@ -78,8 +86,8 @@ def tcp_quat(approach: jnp.ndarray, closing: jnp.ndarray) -> jnp.ndarray:
     return matrix_to_quat(jnp.stack([x, closing, approach], axis=-1))
 
 
-def grasp_candidates(object_points, object_normals, object_valid, part_points, part_normals, part_valid, key
-                     ) -> dict[str, jnp.ndarray]:
+def grasp_candidates(object_points, object_normals, object_valid, part_points, part_normals, part_valid, key,
+                     num_seeds: int = NUM_SEEDS, top_down_weight=TOP_DOWN_WEIGHT) -> dict[str, jnp.ndarray]:
     """Scored grasps for one environment: centre (N, 3), approach (N, 3), closing (N, 3), score (N,), -inf invalid,
     and checks (N, 7): something between the pads, narrow enough, pads free, hand free, above the table, the part
     under a pad, antipodal (GRASP_CHECKS).
@@ -87,10 +95,14 @@ def grasp_candidates(object_points, object_normals, object_valid, part_points, p
     Antipodal sampling: a pad lands on a seed point of the part and closes along its normal; the approach is each
     of APPROACHES made perpendicular to that normal. Points (M, 3) are world-frame with outward unit normals.
     """
-    # Side faces are favoured: flat parts lying on the table are pinched across them, from above.
+    # Half the seeds cover the part evenly (farthest-point sampling: a small knob on a wide lid gets its own), half
+    # are drawn favouring side faces (flat parts lying on the table are pinched across them, from above).
     weights = part_valid * (SIDE_SEED_BIAS + jnp.linalg.norm(part_normals[:, :2], axis=-1))
     probabilities = weights / jnp.maximum(weights.sum(), 1e-9)
-    picked = jax.random.choice(key, part_points.shape[0], (NUM_SEEDS,), p=probabilities)
+    drawn_key, start_key = jax.random.split(key)
+    drawn = jax.random.choice(drawn_key, part_points.shape[0], (num_seeds - num_seeds // 2,), p=probabilities)
+    start = jax.random.choice(start_key, part_points.shape[0], p=probabilities)
+    picked = jnp.concatenate([_spread(part_points, part_valid, start, num_seeds // 2), drawn])
     seeds, normals = part_points[picked], part_normals[picked]
     part_centre = masked_mean(part_points, part_valid)
     object_centre = masked_mean(object_points, object_valid)
@@ -103,22 +115,37 @@ def grasp_candidates(object_points, object_normals, object_valid, part_points, p
         approach = approach / jnp.maximum(length, 1e-9)
         # A thin wall is pinched just inside the seed; a solid section across its whole thickness along the normal.
         inset = jnp.where(through, 0.5 * _thickness(seed, normal, object_points, object_valid), SEED_INSET)
-        start = _first_surface(seed - inset * normal, approach, object_points, object_valid)
-        centre, score, checks = _score(start + GRASP_DEPTH * approach, approach, normal, object_points,
+        inner = seed - inset * normal
+        first, last = _section(inner, approach, object_points, object_valid)
+        depth = jnp.clip(0.5 * (first + last), first + MIN_DEPTH, first + MAX_DEPTH)
+        centre, score, checks = _score(inner + depth * approach, approach, normal, object_points,
                                        object_normals, object_valid, part_points, part_valid, part_centre, extent,
-                                       object_centre)
+                                       object_centre, top_down_weight)
         return centre, approach, jnp.where(length > MIN_APPROACH_COMPONENT, score, -jnp.inf), checks
 
     per_seed = 2 * APPROACHES.shape[0]
-    seed_index = jnp.repeat(jnp.arange(NUM_SEEDS), per_seed)
-    base = jnp.tile(jnp.asarray(np.concatenate([APPROACHES, APPROACHES])), (NUM_SEEDS, 1))
-    through = jnp.tile(jnp.arange(per_seed) >= APPROACHES.shape[0], NUM_SEEDS)
+    seed_index = jnp.repeat(jnp.arange(num_seeds), per_seed)
+    base = jnp.tile(jnp.asarray(np.concatenate([APPROACHES, APPROACHES])), (num_seeds, 1))
+    through = jnp.tile(jnp.arange(per_seed) >= APPROACHES.shape[0], num_seeds)
     centre, approach, score, checks = jax.vmap(one)(seeds[seed_index], normals[seed_index], base, through)
     return {"centre": centre, "approach": approach, "closing": normals[seed_index], "score": score,
             "checks": checks}
 
 
 GRASP_CHECKS = ("between", "width", "pads_free", "hand_free", "above_table", "on_part", "antipodal")
+
+
+def _spread(points, valid, start, count: int) -> jnp.ndarray:
+    """Indices (count,) of points spread over the valid ones by farthest-point sampling from `start`."""
+    points = jnp.asarray(points)
+
+    def pick(i, state):
+        chosen, distance = state
+        distance = jnp.minimum(distance, jnp.linalg.norm(points - points[chosen[i - 1]], axis=-1))
+        return chosen.at[i].set(jnp.argmax(jnp.where(valid, distance, -1.0))), distance
+
+    chosen = jnp.zeros(count, jnp.int32).at[0].set(start)
+    return jax.lax.fori_loop(1, count, pick, (chosen, jnp.full(points.shape[0], jnp.inf)))[0]
 
 
 def _thickness(seed, normal, object_points, object_valid):
@@ -130,13 +157,16 @@ def _thickness(seed, normal, object_points, object_valid):
     return jnp.where(hit, s, 0.0).max()
 
 
-def _first_surface(seed, approach, object_points, object_valid):
-    """Where the line through `seed` along the approach first meets the object (the fingers arrive there first)."""
-    d = object_points - seed
+def _section(point, approach, object_points, object_valid):
+    """Where the line through `point` along the approach enters and leaves the object (distances along it; the
+    fingers arrive at the first); both 0 when it misses."""
+    d = object_points - point
     t = d @ approach
     off_line = jnp.linalg.norm(d - t[:, None] * approach, axis=-1)
     hit = object_valid & (off_line < LINE_RADIUS)
-    return seed + jnp.where(hit.any(), jnp.where(hit, t, jnp.inf).min(), 0.0) * approach
+    first = jnp.where(hit, t, jnp.inf).min()
+    last = jnp.where(hit, t, -jnp.inf).max()
+    return jnp.where(hit.any(), first, 0.0), jnp.where(hit.any(), last, 0.0)
 
 
 def _pad_corners(centre, approach, closing, across):
@@ -163,7 +193,7 @@ def _clear_pad_tips(centre, approach, closing, across, object_points, object_val
 
 
 def _score(centre, approach, closing, object_points, object_normals, object_valid, part_points, part_valid,
-           part_centre, extent, object_centre):
+           part_centre, extent, object_centre, top_down_weight):
     across = jnp.cross(closing, approach)
     centre = _clear_pad_tips(centre, approach, closing, across, object_points, object_valid)
 
@@ -177,17 +207,22 @@ def _score(centre, approach, closing, object_points, object_normals, object_vali
     v_max = jnp.where(between, v, -jnp.inf).max()
     shift = jnp.where(between.any(), 0.5 * (v_min + v_max), 0.0)
     centre = centre + shift * closing
-    v = v - shift
+    v, v_min, v_max = v - shift, v_min - shift, v_max - shift
     width = v_max - v_min
-    # Antipodal: where each pad lands the surface must face that pad (normals along the closing axis).
-    # Faces parallel to the closing axis (the top and bottom of a flat part) are neither for nor against a grasp.
+    # Antipodal: where each pad lands the surface faces that pad. The net push of a pad is along the mean normal of
+    # the front faces in its landing band: its cosine with the closing axis is the contact's tilt (a surface curving
+    # away on both sides of the pad, like a mug's wall, pushes straight; an off-centre chord of a round part pushes
+    # it out along the approach). Faces parallel to the closing axis (the top and bottom of a flat part) and back
+    # faces (the inside of a thin wall, behind the face the pad touches) are left out.
     along = object_normals @ closing
-    across_face = jnp.abs(along) > PARALLEL_FACE
-    side_max = between & across_face & (v > v_max - CONTACT_BAND)
-    side_min = between & across_face & (v < v_min + CONTACT_BAND)
-    facing_max = (along * side_max).sum() / jnp.maximum(side_max.sum(), 1)
-    facing_min = -(along * side_min).sum() / jnp.maximum(side_min.sum(), 1)
-    antipodal = jnp.minimum(facing_max, facing_min)
+    side_max = between & (along > PARALLEL_FACE) & (v > v_max - CONTACT_BAND)
+    side_min = between & (along < -PARALLEL_FACE) & (v < v_min + CONTACT_BAND)
+
+    def net_cosine(side):
+        push = (object_normals * side[:, None]).sum(axis=0)
+        return jnp.abs(push @ closing) / jnp.maximum(jnp.linalg.norm(push), 1e-9)
+
+    antipodal = jnp.minimum(net_cosine(side_max), net_cosine(side_min))
     pads = (object_valid & (jnp.abs(u) < PAD_HALF_WIDTH + 0.003) & (t < PAD_HALF_LENGTH + TIP_CLEARANCE)
             & (t > -PREGRASP_DISTANCE - PAD_HALF_LENGTH - 0.01)
             & (jnp.abs(v) > PAD_INNER) & (jnp.abs(v) < PAD_OUTER))
@@ -205,7 +240,7 @@ def _score(centre, approach, closing, object_points, object_normals, object_vali
     valid = checks.all()
     # Grasps far from the object's middle let it pivot or squeeze out when lifted.
     off_centre = jnp.linalg.norm((centre - object_centre)[:2])
-    score = (1.0 * target_share + 1.0 * antipodal + 0.4 * (-approach[2])
+    score = (0.3 * target_share + 2.0 * antipodal + top_down_weight * (-approach[2])
              - 1.0 * jnp.linalg.norm(centre - part_centre) / jnp.maximum(extent, 0.02)
              - OFF_CENTRE_WEIGHT * off_centre + 0.2 * jnp.minimum(n_between / 20.0, 1.0))
     return centre, jnp.where(valid, score, -jnp.inf), checks
@@ -229,7 +264,7 @@ LOW_TOUCH_HEIGHT = 0.10
 def touch_candidates(object_points, object_valid, part_points, part_valid, push_side):
     """Fingertip targets per side and tilt: point (N, 3), tcp z axis (N, 3), score (N,), -inf where not usable.
 
-    push_side (3,): the side a following push needs (zero when no push follows); it overrides the ranking.
+    push_side (3,): the side a following push comes from (zero when no push follows); it ranks first.
     """
     part_centre = masked_mean(part_points, part_valid)
     object_centre = masked_mean(object_points, object_valid)
@@ -247,21 +282,23 @@ def touch_candidates(object_points, object_valid, part_points, part_valid, push_
         blocking = jnp.where(object_valid & level, object_points @ side, -jnp.inf).max()
         free = best >= blocking - 0.01
         face = part_valid & (reach > best - FACE_BAND)
-        # A push tips tall objects over unless it presses low: pushes take the lowest face point the closed
-        # fingertips can reach above the table; other touches the face point nearest the part's centre.
+        # Before a push the fingertip goes where the push will press (pushing.py: low, near the object's middle);
+        # other touches take the face point nearest the part's centre.
         pushing = (side @ push_side) > 0.5
-        reachable = part_points[:, 2] > TABLE_HEIGHT + MIN_TOUCH_HEIGHT
-        cost = jnp.where(pushing, part_points[:, 2], jnp.linalg.norm(part_points - part_centre, axis=-1))
-        cost = cost + jnp.where(face & (reachable | ~pushing), 0.0, jnp.inf)
-        point = part_points[jnp.argmin(cost)]
+        cost = jnp.where(face, jnp.linalg.norm(part_points - part_centre, axis=-1), jnp.inf)
+        push_at, push_ok = pushing_module.push_point(part_points, part_valid, object_points, object_valid, -side)
+        point = jnp.where(pushing, push_at, part_points[jnp.argmin(cost)])
         z_axis = jnp.where(is_top, -side, -jnp.cos(tilt) * side - jnp.sin(tilt) * jnp.array([0.0, 0.0, 1.0]))
-        above_table = (point[2] > TABLE_HEIGHT + MIN_TOUCH_HEIGHT) & ((point[2] > LOW_TOUCH_HEIGHT) | (tilt > 0))
+        # Side touches keep the closed fingers off the table (a push point is high enough for a tilted hand); a top
+        # touch reaches any part from above.
+        above_table = (is_top | (pushing & (tilt > 0))
+                       | ((point[2] > TABLE_HEIGHT + MIN_TOUCH_HEIGHT) & ((point[2] > LOW_TOUCH_HEIGHT) | (tilt > 0))))
         # The top side has one pose; its tilted copies are dropped.
         above_table = above_table & ~(is_top & (tilt > 0))
         alignment = (part_centre - object_centre) @ side
-        # Before a push only the side opposite the push direction will do.
-        usable = free & above_table & (pushing | (jnp.linalg.norm(push_side) < 0.5))
-        return point, z_axis, jnp.where(usable, alignment - 0.01 * tilt, -jnp.inf)
+        # Before a push the side opposite the push direction comes first (the push can start from there).
+        score = alignment - 0.01 * tilt + jnp.where(pushing, 1.0, 0.0)
+        return point, z_axis, jnp.where(free & above_table & (push_ok | ~pushing), score, -jnp.inf)
 
     sides = jnp.repeat(jnp.asarray(TOUCH_SIDES), len(TOUCH_TILTS), axis=0)
     tilts = jnp.tile(jnp.asarray(TOUCH_TILTS), TOUCH_SIDES.shape[0])

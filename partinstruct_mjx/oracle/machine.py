@@ -19,16 +19,14 @@ from flax import struct
 from partinstruct_mjx.control import jax_ik
 from partinstruct_mjx.control.rotations import (axis_angle_to_quat, quat_error, quat_multiply, quat_rotate,
                                                 quat_to_euler_xyz)
-from partinstruct_mjx.oracle import candidates
+from partinstruct_mjx.oracle import candidates, lookahead, pushing, rotation
+from partinstruct_mjx.oracle.kinds import GRASP, MOVE, RELEASE, ROTATE, SKILL_KINDS, TOUCH
 from partinstruct_mjx.sim import panda
 from partinstruct_mjx.sim.scene import TABLE_HEIGHT
 from partinstruct_mjx.tasks import predicates, progress
-from partinstruct_mjx.tasks.part_geometry import PartGeometry, spatial_masks
+from partinstruct_mjx.tasks.part_geometry import PartGeometry, PartNames, spatial_masks
 from partinstruct_mjx.tasks.vocabulary import OPPOSITE, UNIT_DISTANCE, direction_vector
 
-GRASP, TOUCH, MOVE, ROTATE, RELEASE = range(5)
-SKILL_KINDS = {"grasp_obj": GRASP, "touch_obj": TOUCH, "move_gripper": MOVE, "rotate_obj": ROTATE,
-               "release_obj": RELEASE}
 DONE = -1
 """Skill value once the whole chain is executed."""
 
@@ -42,6 +40,7 @@ APPROACH_SPEED = 0.007
 CARRY_SPEED = 0.01
 PUSH_SPEED = 0.006
 TURN_SPEED = 0.12
+PLANNED_TURN_SPEED = 0.08
 """Commanded TCP speed limits per 20 Hz step (metres, radians)."""
 ARRIVED = 0.012
 """Measured TCP distance to a waypoint that counts as arrived (the servos lag the command)."""
@@ -57,14 +56,30 @@ RETREAT_BACK = 0.05
 RETREAT_UP = 0.10
 """Release: back off along the TCP's z, then up (spec 8.8, the oracle config's 0.1 m)."""
 FINGER_OPENED = 0.035
+"""Release: finger opening (m) at which the hand starts backing off."""
 LOST_STEPS = 6
-PUSH_TILT = 0.9
-PUSH_HEIGHT = 0.025
-"""Pushes press with the hand tilted down this much (rad), this high (m) above the table at least."""
+"""Steps a carry, push or turn may go on without holding (or touching) the object before the skill fails."""
+PUSH_TILTS = (0.9, 1.15, 1.4)
+"""Pushes press with the hand tilted down by the first of these (rad) the arm reaches."""
 PUSH_BACK_OFF = 0.04
 TOUCH_PRESS = 0.01
 """Metres the fingertip leaves the object before re-approaching it low, and how far past the face it aims."""
-"""Steps a carry, push or turn may go on without holding (or touching) the object before the skill fails."""
+PUSH_START_TOLERANCE = 0.015
+"""A touch that ends this close (m) to where the push starts pushes from there."""
+PUSH_STEER = 0.15
+PUSH_STEER_LIMIT = 0.002
+"""Share of the fingertip's sideways offset from the line through the object's middle corrected per step, and the
+most (m) corrected per step (sliding the fingertip fast along the object drags it sideways)."""
+PUSH_SLIP_STEPS = 2
+"""Steps a push goes on without touching before the fingertip approaches the push point again."""
+PUSH_LOOKAHEAD = 0.04
+PUSH_STOP = 0.006
+"""A push heads for the point this far ahead of the object on its line (m), and stops this short of the goal."""
+RETOUCH_BACK = 0.02
+"""Metres behind the touched part the fingertip waits before touching it again after a push."""
+LIFT_START_SPEED = 0.003
+LIFT_ACCELERATION = 0.001
+"""A carry's commanded speed starts at this (m per step) and grows by this per step up to CARRY_SPEED."""
 
 
 @struct.dataclass
@@ -97,10 +112,17 @@ class OracleState:
     target_pos: jnp.ndarray   # grasp/touch TCP pose from the planner
     target_quat: jnp.ndarray
     approach: jnp.ndarray     # (B, 3) unit axis the TCP moves along into the target
+    turn_axis: jnp.ndarray    # (B, 3) rotate: the planned turn (rotation.py), about turn_pivot
+    turn_angle: jnp.ndarray
+    turn_pivot: jnp.ndarray
+    turn_raise: jnp.ndarray   # (B,) metres the hand rises during the turn (keeps the object above the table)
+    anchor_pos: jnp.ndarray   # (B, 3) commanded TCP pose when a turn or a push was planned (it starts from there)
+    anchor_quat: jnp.ndarray
+    turn_progress: jnp.ndarray  # (B,) fraction of the planned turn commanded so far
     key: jnp.ndarray
 
 
-def compile_chains(episodes, geometry: PartGeometry) -> dict[str, np.ndarray]:
+def compile_chains(episodes, names: PartNames) -> dict[str, np.ndarray]:
     """Host arrays of every episode's chain for `init`: kinds, part rows, directions, move flags, push sides."""
     batch, size = len(episodes), progress.MAX_SKILLS
     out = {"kind": np.full((batch, size), RELEASE, np.int32), "part": np.full((batch, size), -1, np.int32),
@@ -113,7 +135,7 @@ def compile_chains(episodes, geometry: PartGeometry) -> dict[str, np.ndarray]:
         for s, step in enumerate(episode.chain):
             out["kind"][b, s] = SKILL_KINDS[step.name]
             if step.part is not None:
-                out["part"][b, s] = geometry.index(step.part)
+                out["part"][b, s] = names.index(step.part)
             if step.direction is not None:
                 out["direction"][b, s] = direction_vector(step.direction)
             out["grasping"][b, s], out["touching"][b, s], out["put_down"][b, s] = (step.grasping, step.touching,
@@ -143,21 +165,76 @@ def init(chains: dict, data, geometry: PartGeometry, keys: jax.Array) -> OracleS
         cmd_pos=jnp.asarray(data.tcp_pos, jnp.float32), cmd_quat=jnp.asarray(data.tcp_quat, jnp.float32),
         finger=jnp.asarray(data.finger_qpos[:, 0], jnp.float32),
         target_pos=jnp.asarray(data.tcp_pos, jnp.float32), target_quat=jnp.asarray(data.tcp_quat, jnp.float32),
-        approach=jnp.zeros((batch, 3), jnp.float32), key=jnp.asarray(keys))
+        approach=jnp.zeros((batch, 3), jnp.float32), turn_axis=jnp.zeros((batch, 3), jnp.float32).at[:, 2].set(1.0),
+        turn_angle=jnp.zeros(batch, jnp.float32), turn_pivot=jnp.zeros((batch, 3), jnp.float32),
+        turn_raise=jnp.zeros(batch, jnp.float32), anchor_pos=jnp.asarray(data.tcp_pos, jnp.float32),
+        anchor_quat=jnp.asarray(data.tcp_quat, jnp.float32), turn_progress=jnp.zeros(batch, jnp.float32),
+        key=jnp.asarray(keys))
 
 
 # --- planning -----------------------------------------------------------------------------------------------
 
 
 def plan(oracle: OracleState, data, geometry: PartGeometry, kinematics, joint_targets) -> OracleState:
-    """Choose the grasp or touch pose of every environment that asks for one (`needs_plan`); the others pass through.
+    """Plan for every environment that asks (`needs_plan`): the grasp or touch pose at the start of those skills
+    (the `attempt`-th reachable candidate in rank order; none left fails the skill), the turn at the start of a
+    rotation (rotation.py). The others pass through; each kind is computed only when some environment needs it."""
+    index = jnp.clip(oracle.skill, 0, progress.MAX_SKILLS - 1)[:, None]
+    kind = jnp.take_along_axis(oracle.kind, index, axis=1)[:, 0]
+    push = (kind == MOVE) & jnp.take_along_axis(oracle.touching, index, axis=1)[:, 0]
+    args = (data, geometry, kinematics, joint_targets)
+    axes = (0, 0, None, None, 0)
+    for planner, needed in ((_plan_reach, kind <= TOUCH), (_plan_turn, kind == ROTATE), (_plan_push, push)):
+        oracle = jax.lax.cond((oracle.needs_plan & needed).any(),
+                              lambda o, planner=planner: jax.vmap(planner, in_axes=axes)(o, *args), lambda o: o, oracle)
+    return oracle
 
-    The `attempt`-th reachable candidate in rank order is taken; none left fails the skill.
-    """
-    return jax.vmap(_plan_one, in_axes=(0, 0, None, None, 0))(oracle, data, geometry, kinematics, joint_targets)
+
+def _plan_push(o: OracleState, data, geo: PartGeometry, kinematics, q):
+    """Where a push starts: the fingertip low on the object's face opposite the push, with the first hand tilt
+    (PUSH_TILTS) at which the arm reaches the pre-push pose, the start and the end of the push."""
+    index = jnp.clip(o.skill, 0, progress.MAX_SKILLS - 1)
+    need = o.needs_plan & (o.kind[index] == MOVE) & o.touching[index]
+    direction = o.direction[index]
+    world = predicates.world_clouds(data, geo)
+    touched, touched_valid = predicates.part_cloud(data, geo, o.masks, jnp.maximum(o.part[jnp.maximum(index - 1, 0)], 0),
+                                                   world)
+    point, _ = pushing.push_point(touched, touched_valid, world[geo.whole], geo.valid[geo.whole], direction)
+    poses = [_push_pose(point, direction, tilt) for tilt in PUSH_TILTS]
+    reached = [lookahead.reach_all(kinematics, q, jnp.stack([pos - PUSH_BACK_OFF * direction, pos,
+                                                             pos + UNIT_DISTANCE * direction]), quat)[0]
+               for pos, quat in poses]
+    pick = jnp.argmax(jnp.stack(reached + [jnp.asarray(True)]))
+    pos = jnp.stack([p for p, _ in poses] + [poses[-1][0]])[pick]
+    quat = jnp.stack([r for _, r in poses] + [poses[-1][1]])[pick]
+    return o.replace(target_pos=jnp.where(need, pos, o.target_pos), target_quat=jnp.where(need, quat, o.target_quat),
+                     anchor_pos=jnp.where(need, o.cmd_pos, o.anchor_pos), needs_plan=o.needs_plan & ~need)
 
 
-def _plan_one(o: OracleState, data, geo: PartGeometry, kinematics, q):
+def _plan_turn(o: OracleState, data, geo: PartGeometry, kinematics, q):
+    index = jnp.clip(o.skill, 0, progress.MAX_SKILLS - 1)
+    need = o.needs_plan & (o.kind[index] == ROTATE)
+    flat = o.on_table_turn[index]
+    world = predicates.world_clouds(data, geo)
+    part_points, part_valid = predicates.part_cloud(data, geo, o.masks, jnp.maximum(o.part[index], 0), world)
+    vector = predicates.masked_mean(part_points, part_valid) - data.object_pos
+    vector = jnp.where(flat, vector * jnp.array([1.0, 1.0, 0.0]), vector)
+    found, axis, angle, pivot, raise_by, _ = rotation.plan(
+        kinematics, q, o.cmd_pos, o.cmd_quat, data.object_pos, world[geo.whole][::2], geo.valid[geo.whole][::2],
+        vector, o.direction[index], flat)
+    take = need & found
+    return o.replace(
+        turn_axis=jnp.where(take, axis, o.turn_axis), turn_angle=jnp.where(take, angle, o.turn_angle),
+        turn_pivot=jnp.where(take, pivot, o.turn_pivot), turn_raise=jnp.where(take, raise_by, o.turn_raise),
+        anchor_pos=jnp.where(need, o.cmd_pos, o.anchor_pos),
+        anchor_quat=jnp.where(need, o.cmd_quat, o.anchor_quat),
+        turn_progress=jnp.where(need, 0.0, o.turn_progress),
+        # Without a plan the closed-loop correction (stage 2) turns the hand the shortest way.
+        stage=jnp.where(need, jnp.where(found, 1, 2), o.stage), stage_steps=jnp.where(need, 0, o.stage_steps),
+        needs_plan=o.needs_plan & ~need)
+
+
+def _plan_reach(o: OracleState, data, geo: PartGeometry, kinematics, q):
     index = jnp.clip(o.skill, 0, progress.MAX_SKILLS - 1)
     kind, part = o.kind[index], jnp.maximum(o.part[index], 0)
     world = predicates.world_clouds(data, geo)
@@ -168,18 +245,26 @@ def _plan_one(o: OracleState, data, geo: PartGeometry, kinematics, q):
     part_normals = quat_rotate(data.body_quat[geo.bodies[part]], geo.normals[part])
     key, sub = jax.random.split(o.key)
 
+    # A chain that turns the object on the table later needs the hand above it (a turned side grasp points the
+    # hand back at the robot).
+    later = jnp.arange(progress.MAX_SKILLS) > index
+    table_turn = (later & (o.kind == ROTATE) & o.on_table_turn).any()
     grasps = candidates.grasp_candidates(object_points, object_normals, object_valid, part_points, part_normals,
-                                          part_valid, sub)
+                                          part_valid, sub, top_down_weight=jnp.where(
+                                              table_turn, TABLE_TURN_TOP_DOWN_WEIGHT, candidates.TOP_DOWN_WEIGHT))
     top_score, top = jax.lax.top_k(grasps["score"], PLAN_CANDIDATES)
     approach, closing = grasps["approach"][top], grasps["closing"][top]
-    # Of the two equivalent closing directions take the one nearer the current hand orientation.
+    # Both closing directions of each grasp (the hand turned half a turn about its axis), the one nearer the
+    # current hand orientation first.
     quat_a = candidates.tcp_quat(approach, closing)
     quat_b = candidates.tcp_quat(approach, -closing)
     turn_a = jnp.linalg.norm(quat_error(quat_a, o.cmd_quat[None]), axis=-1)
     turn_b = jnp.linalg.norm(quat_error(quat_b, o.cmd_quat[None]), axis=-1)
-    grasp_quat = jnp.where((turn_a <= turn_b)[:, None], quat_a, quat_b)
-    grasp_pos = grasps["centre"][top] - candidates.PAD_CENTRE * approach
-    grasp_ok = jnp.isfinite(top_score)
+    near = (turn_a <= turn_b)[:, None]
+    grasp_quat = jnp.stack([jnp.where(near, quat_a, quat_b), jnp.where(near, quat_b, quat_a)], 1).reshape(-1, 4)
+    approach = jnp.repeat(approach, 2, axis=0)
+    grasp_pos = jnp.repeat(grasps["centre"][top], 2, axis=0) - candidates.PAD_CENTRE * approach
+    grasp_ok = jnp.repeat(jnp.isfinite(top_score), 2)
 
     touches = candidates.touch_candidates(object_points, object_valid, part_points, part_valid, o.push_side[index])
     touch_point, touch_axis, touch_score = touches
@@ -196,53 +281,67 @@ def _plan_one(o: OracleState, data, geo: PartGeometry, kinematics, q):
     quats = jnp.where(is_grasp, grasp_quat, jnp.pad(touch_quat, ((0, pad), (0, 0))))
     axes = jnp.where(is_grasp, approach, jnp.pad(touch_axis, ((0, pad), (0, 0))))
     ok = jnp.where(is_grasp, grasp_ok, jnp.pad(touch_ok, (0, pad)))
-    reachable = ok & jax.vmap(_reachable, in_axes=(None, None, 0, 0, 0))(kinematics, q, positions, quats, axes)
-    rank = jnp.cumsum(reachable) - 1
-    chosen = reachable & (rank == o.attempt)
+    reached, joints = jax.vmap(_reachable, in_axes=(None, None, 0, 0, 0))(kinematics, q, positions, quats, axes)
+    reachable = ok & reached
+    # Grasps after which the arm can carry out the rest of the chain (lookahead.py) come first.
+    chain = {name: getattr(o, name) for name in ("kind", "direction", "put_down", "part", "on_table_turn",
+                                                 "num_skills")}
+
+    def part_vector(row):
+        points, valid = predicates.part_cloud(data, geo, o.masks, jnp.maximum(row, 0), world)
+        return predicates.masked_mean(points, valid) - data.object_pos
+
+    clear = jax.vmap(lookahead.outlook, in_axes=(None, 0, 0, 0, None, None, None, None, None, None))(
+        kinematics, joints, positions, quats, chain, index, data.object_pos, object_points, object_valid, part_vector)
+    order = jnp.argsort(jnp.where(reachable & (clear | ~is_grasp), 0, 1) * positions.shape[0]
+                        + jnp.arange(positions.shape[0]))
+    rank = jnp.cumsum(reachable[order]) - 1
+    chosen = reachable[order] & (rank == o.attempt)
     found = chosen.any()
-    pick = jnp.argmax(chosen)
-    fail = o.needs_plan & ~found
-    take = o.needs_plan & found
+    pick = order[jnp.argmax(chosen)]
+    need = o.needs_plan & (kind <= TOUCH)
+    fail = need & ~found
+    take = need & found
     return o.replace(
         target_pos=jnp.where(take, positions[pick], o.target_pos),
         target_quat=jnp.where(take, quats[pick], o.target_quat),
         approach=jnp.where(take, axes[pick], o.approach),
         stage=jnp.where(take, 1, o.stage), stage_steps=jnp.where(take, 0, o.stage_steps),
-        needs_plan=jnp.zeros_like(o.needs_plan), key=key,
+        needs_plan=o.needs_plan & ~need, key=key,
         failed=o.failed | fail, failed_skill=jnp.where(fail & ~o.failed, o.skill, o.failed_skill))
 
 
 REACH_CONFIG = jax_ik.IKConfig(iterations=40)
-PLAN_CANDIDATES = 16
-"""Best-ranked grasps whose reach is checked with the IK."""
+TABLE_TURN_TOP_DOWN_WEIGHT = 2.0
+"""candidates.TOP_DOWN_WEIGHT for grasps before a turn on the table."""
+PLAN_CANDIDATES = 8
+"""Best-ranked grasps whose reach (with both closing directions) and outlook are checked with the IK."""
 
 
 def _reachable(kinematics, q, position, quat, axis):
-    """The IK reaches the via point, the pre-pose and the pose itself, each from the previous solution."""
+    """The IK reaches the via point, the pre-pose and the pose itself, each from the previous solution; and the
+    joint angles at the pose."""
     pre = position - candidates.PREGRASP_DISTANCE * axis
-    ok = jnp.asarray(True)
-    for target in (pre + jnp.array([0.0, 0.0, VIA_HEIGHT]), pre, position):
-        q, position_error, rotation_error = jax_ik._solve_one(kinematics, REACH_CONFIG, q, target, quat)
-        ok = ok & (position_error < 0.005) & (rotation_error < 0.05)
-    return ok
+    return lookahead.reach_all(kinematics, q, jnp.stack([pre + jnp.array([0.0, 0.0, VIA_HEIGHT]), pre, position]),
+                               quat, REACH_CONFIG)
 
 
 # --- acting -------------------------------------------------------------------------------------------------
 
 
-def act(oracle: OracleState, data, skill_rows: progress.GoalRows, geometry: PartGeometry,
-        task: progress.TaskState | None = None) -> tuple[OracleState, jnp.ndarray]:
+def act(oracle: OracleState, data, task: progress.TaskState, geometry: PartGeometry, follow_env: bool = False
+        ) -> tuple[OracleState, jnp.ndarray]:
     """One step of every environment's machine: the new state and the (B, 7) Euler pose actions.
 
-    skill_rows: the episodes' skill effects, `TaskState.skills` (B, MAX_SKILLS, MAX_GOALS). task: an env in skill
-    mode passes its progress; the machine then follows the env's skill chain (a skill ends when the env counts it,
-    judged from the env's p0 and spatial parts) instead of its own tolerances.
+    task: the env's progress; its skill effects (`skills`) are what the machine judges its skills by, and its spatial
+    parts (`masks`) are the ones the env judges the task by, so the part a rotation turns or a push touches again is
+    the env's. follow_env (an env in skill mode): the machine follows the env's skill chain (a skill ends when the env
+    counts it, judged from the env's p0 and spatial parts) instead of its own tolerances.
     """
-    follow = (oracle.skill, oracle.p0, oracle.masks) if task is None else (task.skill_index, task.skill_p0,
-                                                                           task.masks)
+    follow = (task.skill_index, task.skill_p0, task.masks)
     before = oracle.skill
-    oracle = jax.vmap(partial(_act_one, follow_env=task is not None), in_axes=(0, 0, None, 0, 0, 0))(
-        oracle, data, geometry, skill_rows, follow, _push_poses(oracle, data, geometry))
+    oracle = jax.vmap(partial(_act_one, follow_env=follow_env), in_axes=(0, 0, None, 0, 0))(
+        oracle, data, geometry, task.skills, follow)
     oracle = oracle.replace(masks=_resampled_masks(oracle.skill != before, oracle.masks, data, geometry))
     euler = quat_to_euler_xyz(oracle.cmd_quat)
     return oracle, jnp.concatenate([oracle.cmd_pos, euler, oracle.finger[:, None]], axis=1)
@@ -273,36 +372,12 @@ def _resampled_masks(started, masks, data, geo: PartGeometry):
     return jax.lax.cond(started.any(), resample, lambda: masks)
 
 
-def _push_poses(oracle: OracleState, data, geo: PartGeometry):
-    """`_push_pose` of every environment, computed only on steps where some push is still placing its fingertip."""
-    index = jnp.clip(oracle.skill, 0, progress.MAX_SKILLS - 1)[:, None]
-    pushing = ((jnp.take_along_axis(oracle.kind, index, axis=1)[:, 0] == MOVE)
-               & jnp.take_along_axis(oracle.touching, index, axis=1)[:, 0] & (oracle.stage < 3)
-               & (oracle.skill != DONE) & ~oracle.failed)
-    direction = jnp.take_along_axis(oracle.direction, index[:, :, None], axis=1)[:, 0]
-    batch = direction.shape[0]
-    return jax.lax.cond(
-        pushing.any(), lambda: jax.vmap(_push_pose, in_axes=(0, None, 0))(data, geo, direction),
-        lambda: (jnp.zeros((batch, 3), jnp.float32), jnp.zeros((batch, 4), jnp.float32).at[:, 0].set(1.0),
-                 jnp.zeros(batch, jnp.float32)))
-
-
-def _push_pose(data, geo: PartGeometry, direction):
-    """TCP pose (position, quaternion) that puts the fingertip (hand tilted down by PUSH_TILT, facing the push) on
-    the lowest point of the object's face opposite the push, at least PUSH_HEIGHT above the table; and that point's
-    height."""
-    world = predicates.world_clouds(data, geo)
-    points, valid = world[geo.whole], geo.valid[geo.whole]
-    reach = jnp.where(valid, -(points @ direction), -jnp.inf)
-    face = valid & (reach > reach.max() - candidates.FACE_BAND) & (points[:, 2] > TABLE_HEIGHT + PUSH_HEIGHT)
-    # Low, and in line with the object's centre along the push (an off-centre push turns the object away).
-    offset = points - predicates.masked_mean(points, valid)
-    lateral = offset - (offset @ direction)[:, None] * direction
-    cost = points[:, 2] + 2.0 * jnp.linalg.norm(lateral[:, :2], axis=-1)
-    point = points[jnp.argmin(jnp.where(face, cost, jnp.inf))]
-    z_axis = jnp.cos(PUSH_TILT) * direction - jnp.sin(PUSH_TILT) * jnp.array([0.0, 0.0, 1.0])
+def _push_pose(point, direction, tilt):
+    """TCP pose (position, quaternion) that puts the fingertip on `point` with the hand facing the push, tilted down
+    by `tilt`."""
+    z_axis = jnp.cos(tilt) * direction - jnp.sin(tilt) * jnp.array([0.0, 0.0, 1.0])
     pos = point - predicates.FINGERTIP_OFFSET * z_axis
-    return pos.astype(jnp.float32), candidates.touch_quat(z_axis).astype(jnp.float32), point[2].astype(jnp.float32)
+    return pos.astype(jnp.float32), candidates.touch_quat(z_axis).astype(jnp.float32)
 
 
 def _skill_effects(o: OracleState, data, geo: PartGeometry, rows) -> jnp.ndarray:
@@ -310,7 +385,7 @@ def _skill_effects(o: OracleState, data, geo: PartGeometry, rows) -> jnp.ndarray
     return progress.evaluate(data, geo, o.masks, rows, o.p0).all()
 
 
-def _act_one(o: OracleState, data, geo: PartGeometry, rows, env, push_pose, follow_env: bool):
+def _act_one(o: OracleState, data, geo: PartGeometry, rows, env, follow_env: bool):
     env_skill, env_p0, env_masks = env
     if follow_env:
         # While the machine is on the env's skill it judges it as the env does; once the env has counted a skill the
@@ -325,6 +400,12 @@ def _act_one(o: OracleState, data, geo: PartGeometry, rows, env, push_pose, foll
     z_axis = quat_rotate(o.cmd_quat, jnp.array([0.0, 0.0, 1.0]))
     stage, steps = o.stage, o.stage_steps
     up = jnp.array([0.0, 0.0, 1.0])
+
+    # The part the skill is about: its own, or for a push the part the touch before it touched.
+    world = predicates.world_clouds(data, geo)
+    push = (kind == MOVE) & o.touching[index]
+    focus_part = jnp.maximum(jnp.where(push, o.part[jnp.maximum(index - 1, 0)], o.part[index]), 0)
+    focus_points, focus_valid = predicates.part_cloud(data, geo, env_masks, focus_part, world)
 
     # Grasp / touch: 0 wait for a plan, 1 via point, 2 pre-pose, 3 approach, 4 close, 5 judge, 6 back off.
     pre = o.target_pos - candidates.PREGRASP_DISTANCE * o.approach
@@ -353,37 +434,62 @@ def _act_one(o: OracleState, data, geo: PartGeometry, rows, env, push_pose, foll
     goal_obj = o.p0 + UNIT_DISTANCE * direction
     error = goal_obj - data.object_pos
     push = o.touching[index]
-    correction = jnp.where(push, direction * (error @ direction), error)
     put_down = o.put_down[index]
-    move_goal = jnp.where(put_down, o.cmd_pos - 0.02 * up, o.cmd_pos + correction)
-    move_speed = jnp.where(push, PUSH_SPEED, CARRY_SPEED)
-    # A push first moves the fingertip low on the object (the touched part may be high up: pushing there tips tall
-    # objects over): 0 back off, 1 pre-push pose, 2 approach until touching, 3 push.
-    push_pos, push_quat, push_height = push_pose
-    tip_height = (tcp + predicates.FINGERTIP_OFFSET * quat_rotate(o.cmd_quat, up))[2]
-    push_goals = jnp.stack([o.target_pos - PUSH_BACK_OFF * direction + PUSH_BACK_OFF * up,
-                            push_pos - PUSH_BACK_OFF * direction, push_pos + TOUCH_PRESS * direction, move_goal])
-    push_stage = jnp.clip(stage, 0, 3)
+    move_goal = jnp.where(put_down, o.cmd_pos - 0.02 * up, o.cmd_pos + error)
+    # A carry starts slowly (the grip settles under the load) and speeds up.
+    carry_speed = jnp.minimum(CARRY_SPEED, LIFT_START_SPEED + LIFT_ACCELERATION * steps)
+    pos_c, _ = _toward(o.cmd_pos, o.cmd_quat, move_goal, o.cmd_quat, carry_speed, TURN_SPEED)
+    # A push presses the touched part at its push point (pushing.py: low, near the line through the object's
+    # middle) and drives the object along the line towards its goal; if the fingertip slips off it approaches the
+    # (moved) push point again; if the touched part is not under the fingertip at the end it touches it again (the
+    # task's TOUCHING names it): 0 back off, 1 pre-push pose, 2 approach until touching, 3 push, 4 behind the
+    # touched part, 5 touch it. The touch before a push usually ends at the push point (then it starts at 3).
+    push_pos, push_quat = o.target_pos, o.target_quat
+    push_point, _ = pushing.push_point(focus_points, focus_valid, world[geo.whole], geo.valid[geo.whole], direction)
+    to_tcp = -predicates.FINGERTIP_OFFSET * quat_rotate(push_quat, up)
+    tip = tcp + predicates.FINGERTIP_OFFSET * quat_rotate(o.cmd_quat, up)
+    # Pure pursuit: head for the point PUSH_LOOKAHEAD ahead of the object on the line p0 -> goal, so a sideways
+    # drift is pushed back onto the line; the fingertip keeps to the line through the object's middle along it.
+    flat = jnp.array([1.0, 1.0, 0.0])
+    travelled = (data.object_pos - o.p0) @ direction
+    aim = o.p0 + jnp.minimum(travelled + PUSH_LOOKAHEAD, UNIT_DISTANCE + PUSH_LOOKAHEAD) * direction
+    heading = (aim - data.object_pos) * flat
+    heading = heading / jnp.maximum(jnp.linalg.norm(heading), 1e-6)
+    offset = (tip - predicates.masked_mean(world[geo.whole], geo.valid[geo.whole])) * flat
+    lateral = offset - (offset @ heading) * heading
+    steer = PUSH_SPEED * heading - jnp.clip(PUSH_STEER * lateral, -PUSH_STEER_LIMIT, PUSH_STEER_LIMIT)
+    pushed_enough = travelled > UNIT_DISTANCE - PUSH_STOP
+    retouch_point = focus_points[jnp.argmin(jnp.where(
+        focus_valid, focus_points @ direction + 0.5 * jnp.linalg.norm(focus_points - tip, axis=-1), jnp.inf))]
+    tip_to_tcp = -predicates.FINGERTIP_OFFSET * z_axis
+    push_goals = jnp.stack([o.anchor_pos - PUSH_BACK_OFF * direction + PUSH_BACK_OFF * up,
+                            push_pos - PUSH_BACK_OFF * direction, push_point + TOUCH_PRESS * direction + to_tcp,
+                            o.cmd_pos + jnp.where(pushed_enough, 0.0, steer),
+                            retouch_point - RETOUCH_BACK * direction + tip_to_tcp,
+                            retouch_point + tip_to_tcp])
+    push_stage = jnp.clip(stage, 0, 5)
     push_goal = push_goals[push_stage]
-    push_turn = jnp.where(push_stage == 0, o.cmd_quat, push_quat)
-    pos_p, quat_p = _toward(o.cmd_pos, o.cmd_quat, push_goal, push_turn, jnp.where(push_stage >= 2, PUSH_SPEED,
-                                                                                    FREE_SPEED), TURN_SPEED)
-    pos_c, _ = _toward(o.cmd_pos, o.cmd_quat, move_goal, o.cmd_quat, move_speed, TURN_SPEED)
-    pos_m = jnp.where(push & (push_stage < 3), pos_p, pos_c)
-    quat_m = jnp.where(push & (push_stage < 3), quat_p, o.cmd_quat)
+    push_turn = jnp.where((push_stage == 1) | (push_stage == 2), push_quat, o.cmd_quat)
+    push_speed = jnp.where((push_stage == 2) | (push_stage >= 3), PUSH_SPEED, FREE_SPEED)
+    pos_p, quat_p = _toward(o.cmd_pos, o.cmd_quat, push_goal, push_turn, push_speed, TURN_SPEED)
+    pos_m = jnp.where(push, pos_p, pos_c)
+    quat_m = jnp.where(push, quat_p, o.cmd_quat)
     push_arrived = (jnp.linalg.norm(pos_p - push_goal) < 1e-6) & (jnp.linalg.norm(tcp - push_goal) < ARRIVED)
     touching_now = predicates.touching(data, geo, o.masks, geo.whole)
-    push_next = jnp.select([push_stage == 0, push_stage == 1, push_stage == 2],
-                           [push_arrived | (steps > 20), push_arrived | (steps > 30), touching_now | (steps > 30)],
-                           False)
-    # Already touching low down: push from where the fingertip is.
-    move_stage = jnp.where(push, jnp.where((push_stage == 0) & touching_now & (tip_height < push_height + 0.02), 3,
-                                           push_stage + push_next), stage)
-    move_done = effects & (put_down | (jnp.linalg.norm(error) < MOVE_TOLERANCE)) & (~push | (push_stage == 3))
+    touching_part = predicates.touching(data, geo, env_masks, focus_part, world)
+    push_next = jnp.select([push_stage == 0, push_stage == 1, push_stage == 2, push_stage == 3, push_stage == 4],
+                           [push_arrived | (steps > 20), push_arrived | (steps > 30), touching_now | (steps > 30),
+                            pushed_enough & ~touching_part, push_arrived | (steps > 20)], False)
+    # Already touching where the push would start: push from there. Slipped off during the push: approach again.
+    in_place = touching_now & (jnp.linalg.norm(tip - push_point) < PUSH_START_TOLERANCE)
+    slipped = (push_stage == 3) & ~pushed_enough & (o.lost >= PUSH_SLIP_STEPS)
+    move_stage = jnp.where(push, jnp.select([(push_stage == 0) & in_place, slipped], [3, 2], push_stage + push_next),
+                           stage)
+    move_done = jnp.where(push, effects & pushed_enough & touching_part & (push_stage >= 3),
+                          effects & (put_down | (jnp.linalg.norm(error) < MOVE_TOLERANCE)))
 
     # Rotate: turn the hand so the part's direction from the object origin reaches the goal direction.
-    part_points, part_valid = predicates.part_cloud(data, geo, o.masks, jnp.maximum(o.part[index], 0))
-    vector = predicates.masked_mean(part_points, part_valid) - data.object_pos
+    vector = predicates.masked_mean(focus_points, focus_valid) - data.object_pos
     flat = o.on_table_turn[index]
     vector = jnp.where(flat, vector * jnp.array([1.0, 1.0, 0.0]), vector)
     vector = vector / jnp.maximum(jnp.linalg.norm(vector), 1e-9)
@@ -396,7 +502,18 @@ def _act_one(o: OracleState, data, geo: PartGeometry, rows, env, push_pose, foll
     axis = axis / jnp.linalg.norm(axis)
     turn = axis_angle_to_quat(axis, jnp.minimum(angle, TURN_SPEED))
     quat_t = quat_multiply(turn, o.cmd_quat)
-    rotate_done = effects & (angle < ROTATE_TOLERANCE)
+    # 0 wait for the plan, 1 follow the planned turn, 2 closed-loop correction (shortest arc about the TCP).
+    radius = jnp.linalg.norm(o.anchor_pos - o.turn_pivot)
+    turn_step = jnp.minimum(PLANNED_TURN_SPEED, CARRY_SPEED / jnp.maximum(radius, 1e-3)) / jnp.maximum(o.turn_angle,
+                                                                                                      1e-3)
+    turn_progress = jnp.where(stage == 1, jnp.minimum(1.0, o.turn_progress + turn_step), o.turn_progress)
+    pos_1, quat_1 = rotation.turned_pose(o.turn_pivot, o.turn_axis, o.turn_angle, turn_progress, o.anchor_pos,
+                                         o.anchor_quat)
+    pos_1 = pos_1 + o.turn_raise * jnp.minimum(1.0, 2.0 * turn_progress) * up
+    pos_t = jnp.where(stage == 1, pos_1, o.cmd_pos)
+    quat_t = jnp.select([stage == 1, stage == 2], [quat_1, quat_t], o.cmd_quat)
+    turn_stage = jnp.where((stage == 1) & (turn_progress >= 1.0) & (jnp.linalg.norm(tcp - pos_1) < ARRIVED), 2, stage)
+    rotate_done = effects & (angle < ROTATE_TOLERANCE) & (stage == 2)
 
     # Release: open, back off along the TCP's z, then up.
     release_goals = jnp.stack([o.cmd_pos, o.target_pos - RETREAT_BACK * z_axis, o.target_pos + RETREAT_UP * up])
@@ -407,7 +524,7 @@ def _act_one(o: OracleState, data, geo: PartGeometry, rows, env, push_pose, foll
                              release_arrived | (steps > 25))
     release_done = effects & (stage >= 2) & release_next
 
-    pos = jnp.select([kind <= TOUCH, kind == MOVE, kind == ROTATE], [pos_r, pos_m, o.cmd_pos], pos_l)
+    pos = jnp.select([kind <= TOUCH, kind == MOVE, kind == ROTATE], [pos_r, pos_m, pos_t], pos_l)
     quat = jnp.select([kind <= TOUCH, kind == MOVE, kind == ROTATE], [quat_r, quat_m, quat_t], o.cmd_quat)
     holding = (kind == ROTATE) | ((kind == MOVE) & (o.grasping[index] | push))
     finger = jnp.select([kind <= TOUCH, kind == RELEASE, holding], [reach_finger, panda.FINGER_OPEN,
@@ -418,15 +535,15 @@ def _act_one(o: OracleState, data, geo: PartGeometry, rows, env, push_pose, foll
         # Moves run their full 0.12 m (a carry stopped early swings the object off the fingers; the next move is
         # measured from the env's p0 anyway); other skills end once the env counts them.
         done = done | ((env_skill > o.skill) & (kind != MOVE))
-    next_stage = jnp.select([kind <= TOUCH, kind == MOVE, kind == RELEASE],
-                            [reach_stage, move_stage, jnp.minimum(stage + release_next, 2)], stage)
+    next_stage = jnp.select([kind <= TOUCH, kind == MOVE, kind == RELEASE, kind == ROTATE],
+                            [reach_stage, move_stage, jnp.minimum(stage + release_next, 2), turn_stage], stage)
     # Release starts from the pose it has now: remember it as the retreat's reference.
     target_pos = jnp.where((kind == RELEASE) & (stage == 0), o.cmd_pos, o.target_pos)
     attempt = o.attempt + replan
     out_of_attempts = replan & (attempt >= MAX_ATTEMPTS)
     over_budget = o.skill_steps >= jnp.asarray(SKILL_BUDGET)[kind]
     # Carrying, pushing or turning without the object in hand fails at once (the original aborts such motions).
-    needs_hold = ((kind == MOVE) & (o.grasping[index] | (push & (stage >= 3)))) | (kind == ROTATE)
+    needs_hold = ((kind == MOVE) & (o.grasping[index] | (push & (stage == 3) & ~pushed_enough))) | (kind == ROTATE)
     holds = jnp.where(push, touching_now, predicates.grasping(data, geo, o.masks, geo.whole))
     lost = jnp.where(needs_hold & ~holds, o.lost + 1, 0)
     fail = running & ~done & (over_budget | out_of_attempts | (lost > LOST_STEPS))
@@ -435,7 +552,9 @@ def _act_one(o: OracleState, data, geo: PartGeometry, rows, env, push_pose, foll
     next_skill = jnp.where(o.skill + 1 >= o.num_skills, DONE, o.skill + 1)
     skill = jnp.where(finished, next_skill, o.skill)
     new_index = jnp.clip(skill, 0, progress.MAX_SKILLS - 1)
-    starts_reach = finished & (skill != DONE) & (o.kind[new_index] <= TOUCH)
+    new_kind = o.kind[new_index]
+    starts_plan = finished & (skill != DONE) & ((new_kind <= TOUCH) | (new_kind == ROTATE)
+                                                | ((new_kind == MOVE) & o.touching[new_index]))
     keep = ~running
     return o.replace(
         skill=skill,
@@ -443,9 +562,9 @@ def _act_one(o: OracleState, data, geo: PartGeometry, rows, env, push_pose, foll
         stage_steps=jnp.where(finished | (next_stage != stage), 0, o.stage_steps + 1),
         skill_steps=jnp.where(finished, 0, o.skill_steps + 1),
         attempt=jnp.where(finished, 0, attempt), lost=jnp.where(finished, 0, lost),
-        needs_plan=running & (starts_reach | (replan & ~out_of_attempts)),
+        needs_plan=running & (starts_plan | (replan & ~out_of_attempts)),
         failed=o.failed | fail, failed_skill=jnp.where(fail, o.skill, o.failed_skill),
         p0=jnp.where(finished, data.object_pos, o.p0),
         cmd_pos=jnp.where(keep, o.cmd_pos, pos), cmd_quat=jnp.where(keep, o.cmd_quat, quat),
         finger=jnp.where(keep, o.finger, finger),
-        target_pos=target_pos)
+        target_pos=target_pos, turn_progress=jnp.where(finished, 0.0, turn_progress))

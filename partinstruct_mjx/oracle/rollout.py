@@ -24,7 +24,7 @@ DONE_GRACE = 10
 """Steps a scene keeps stepping (the oracle holding its last command) after the oracle finished its chain."""
 
 _plan = jax.jit(machine.plan)
-_act = jax.jit(machine.act)
+_act = jax.jit(machine.act, static_argnames="follow_env")
 
 
 @dataclass
@@ -64,16 +64,16 @@ class OraclePolicy:
     def reset(self, env: PartInstructEnv, state, key: jax.Array) -> None:
         keys = jnp.stack([jax.random.fold_in(key, e.ep_id if e.seed is None else e.seed % 2**31)
                           for e in env.episodes])
-        self.state = machine.init(machine.compile_chains(env.episodes, env.geometry), state.data, env.geometry, keys)
+        self.state = machine.init(machine.compile_chains(env.episodes, env.part_names), state.data, env.geometry, keys)
 
     def act(self, env: PartInstructEnv, state, instructions=None, key=None) -> jnp.ndarray:
         """(B, 7) Euler actions for this step (plans first where a scene needs a grasp or touch pose)."""
         if self.state is None:
             raise TaskError("OraclePolicy.act was called before reset")
         if bool(np.asarray(self.state.needs_plan).any()):
-            self.state = _plan(self.state, state.data, env.geometry, env.kinematics, state.info["joint_targets"])
-        self.state, action = _act(self.state, state.data, state.task.skills, env.geometry,
-                                  state.task if env.config.skill_mode else None)
+            self.state = _plan(self.state, state.data.for_jit(), env.geometry, env.kinematics,
+                               state.info["joint_targets"])
+        self.state, action = _act(self.state, state.data.for_jit(), state.task, env.geometry, env.config.skill_mode)
         return action
 
 

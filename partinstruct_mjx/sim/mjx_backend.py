@@ -17,7 +17,7 @@ from partinstruct_mjx.errors import SceneError
 from partinstruct_mjx.sim import panda
 from partinstruct_mjx.sim.mujoco_backend import initial_positions
 from partinstruct_mjx.sim.scene import Scene
-from partinstruct_mjx.sim.state import MAX_FINGER_CONTACTS, SceneState
+from partinstruct_mjx.sim.state import MAX_FINGER_CONTACTS, SceneState, body_rows
 
 
 class MjxBackend:
@@ -93,6 +93,13 @@ def _extract(model, data, indices) -> SceneState:
     return jax.vmap(extract_state, in_axes=(None, 0, None))(model, data, indices)
 
 
+def _padded_bodies(rows, first):
+    """Body rows padded to `body_rows` (origin / identity quaternion: `first` in column 0)."""
+    extra = body_rows(rows.shape[0]) - rows.shape[0]
+    padding = jnp.zeros((extra, rows.shape[1]), rows.dtype).at[:, 0].set(first)
+    return jnp.concatenate([rows, padding])
+
+
 def extract_state(model, d, indices) -> SceneState:
     """One environment's SceneState from its mjx.Data (the same fields the mujoco backend fills)."""
     contact = d._impl.contact
@@ -112,7 +119,7 @@ def extract_state(model, d, indices) -> SceneState:
         arm_qpos=d.qpos[indices["arm"]], finger_qpos=d.qpos[indices["finger"]],
         tcp_pos=d.site_xpos[indices["tcp"]], tcp_quat=d.xquat[indices["hand"]],
         object_pos=d.xpos[indices["object"]], object_quat=d.xquat[indices["object"]],
-        body_pos=d.xpos, body_quat=d.xquat,
+        body_pos=_padded_bodies(d.xpos, 0.0), body_quat=_padded_bodies(d.xquat, 1.0),
         contact_pos=jnp.stack([s[0] for s in slots]), contact_force=jnp.stack([s[1] for s in slots]),
         contact_geom=jnp.stack([s[2] for s in slots]),
     )

@@ -147,8 +147,8 @@ class MujocoBackend:
         out.tcp_quat[i] = data.xquat[scene.hand_body]
         out.object_pos[i] = data.xpos[scene.object_body]
         out.object_quat[i] = data.xquat[scene.object_body]
-        out.body_pos[i] = data.xpos
-        out.body_quat[i] = data.xquat
+        out.body_pos[i, : self.model.nbody] = data.xpos
+        out.body_quat[i, : self.model.nbody] = data.xquat
         self._extract_finger_contacts(i)
 
     def _extract_finger_contacts(self, i: int) -> None:

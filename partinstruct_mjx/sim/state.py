@@ -7,6 +7,13 @@ from flax import struct
 
 MAX_FINGER_CONTACTS = 8
 """Contacts kept per finger (the strongest ones when there are more)."""
+BODY_ROWS = 8
+"""Body rows are padded to a multiple of this (scenes with a few more or fewer object links share compiled code)."""
+
+
+def body_rows(nbody: int) -> int:
+    """Rows of `SceneState.body_pos` for a model with `nbody` bodies."""
+    return -(-nbody // BODY_ROWS) * BODY_ROWS
 
 
 @struct.dataclass
@@ -23,7 +30,8 @@ class SceneState:
       finger_qpos: (B, 2) finger slide positions (0 closed ... 0.04 open, each).
       tcp_pos, tcp_quat: (B, 3), (B, 4) tool centre point pose (spec 1.3).
       object_pos, object_quat: (B, 3), (B, 4) pose of the object's root body.
-      body_pos, body_quat: (B, nbody, 3), (B, nbody, 4) every body's pose (object links move part points).
+      body_pos, body_quat: (B, R, 3), (B, R, 4) every body's pose (object links move part points); R =
+        `body_rows(nbody)`, the rows past nbody hold the origin and the identity.
       contact_pos: (B, 2, K, 3) contact points of the left (0) and right (1) finger.
       contact_force: (B, 2, K) contact normal forces in newtons; 0 in empty slots.
       contact_geom: (B, 2, K) the geom each finger touches; -1 in empty slots.
@@ -48,6 +56,11 @@ class SceneState:
     def batch_size(self) -> int:
         return self.time.shape[0]
 
+    def for_jit(self) -> SceneState:
+        """This state as jitted functions take it: without qpos and qvel, whose widths depend on the object's joints,
+        so that functions compiled for one object serve every object with the same padded shapes."""
+        return self.replace(qpos=None, qvel=None)
+
     @property
     def gripper_width(self):
         """(B,) distance between the finger pads: the sum of both finger positions."""
@@ -67,8 +80,8 @@ def empty_scene_state(batch_size: int, nq: int, nv: int, nbody: int) -> SceneSta
         tcp_quat=np.zeros((b, 4)),
         object_pos=np.zeros((b, 3)),
         object_quat=np.zeros((b, 4)),
-        body_pos=np.zeros((b, nbody, 3)),
-        body_quat=np.zeros((b, nbody, 4)),
+        body_pos=np.zeros((b, body_rows(nbody), 3)),
+        body_quat=np.tile([1.0, 0.0, 0.0, 0.0], (b, body_rows(nbody), 1)),
         contact_pos=np.zeros((b, 2, k, 3)),
         contact_force=np.zeros((b, 2, k)),
         contact_geom=np.full((b, 2, k), -1, dtype=np.int32),

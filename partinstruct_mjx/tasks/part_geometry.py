@@ -8,6 +8,7 @@ between resamplings (spec 3.3's freeze semantics).
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
 import jax.numpy as jnp
@@ -26,13 +27,22 @@ _SPATIAL_MEANS = np.array([DIRECTIONS[w] if w in DIRECTIONS else (0.0, 0.0, 0.0)
 _SPATIAL_VARIANCES = np.array([MIDDLE_VARIANCE if w == "middle" else SPATIAL_VARIANCE for w in SPATIAL_PARTS])
 
 
+SEMANTIC_ROWS = 8
+"""Rows reserved for semantic parts (a multiple of it for objects with more): objects with different part counts
+then give arrays of the same shapes, and jitted functions compiled for one object serve the others."""
+GEOM_ROWS = 64
+"""`geom_part` is padded to a multiple of this many geoms, for the same reason."""
+
+
 @struct.dataclass
 class PartGeometry:
-    """Part clouds of one object (shared by every environment of a batch).
+    """Part clouds of one object (shared by every environment of a batch); the arrays jitted code reads.
 
-    points: (K, M, 3) body-frame points per part row; normals: (K, M, 3) their outward unit normals (body frame);
-    bodies: (K, M) model body ids; valid: (K, M) padding mask.
-    geom_part: (ngeom,) semantic part row of each geom, -1 for geoms that are not the object's.
+    Rows: `num_semantic` semantic parts (the object's, then invalid padding rows), the seven spatial parts, then the
+    whole object. points: (K, M, 3) body-frame points per part row; normals: (K, M, 3) their outward unit normals
+    (body frame); bodies: (K, M) model body ids; valid: (K, M) padding mask.
+    geom_part: (G,) semantic part row of each geom, -1 for geoms that are not the object's (and padding).
+    The row labels live in `PartNames` (host side).
     """
 
     points: jnp.ndarray
@@ -40,25 +50,42 @@ class PartGeometry:
     bodies: jnp.ndarray
     valid: jnp.ndarray
     geom_part: jnp.ndarray
-    names: tuple[str, ...] = struct.field(pytree_node=False)
     num_semantic: int = struct.field(pytree_node=False)
 
     @property
     def whole(self) -> int:
         """Row of the whole object (part '')."""
-        return len(self.names) - 1
+        return self.points.shape[0] - 1
+
+
+@dataclass(frozen=True)
+class PartNames:
+    """The labels of a PartGeometry's rows: the object's semantic parts, the spatial parts and '' (whole object)."""
+
+    semantic: tuple[str, ...]
+    num_semantic: int
+    """Semantic rows of the geometry (the object's parts, then padding)."""
+
+    @property
+    def whole(self) -> int:
+        return self.num_semantic + len(SPATIAL_PARTS)
 
     def index(self, name: str) -> int:
         """Row of a part label, spatial word or '' (whole object); raises TaskError naming an unknown part."""
         name = "" if name in ("", None) else name
-        if name not in self.names:
-            known = ", ".join(n for n in self.names if n)
-            raise TaskError(f"unknown part '{name}'; this object has: {known}")
-        return self.names.index(name)
+        if name in self.semantic:
+            return self.semantic.index(name)
+        if name in SPATIAL_PARTS:
+            return self.num_semantic + SPATIAL_PARTS.index(name)
+        if name == "":
+            return self.whole
+        known = ", ".join((*self.semantic, *SPATIAL_PARTS))
+        raise TaskError(f"unknown part '{name}'; this object has: {known}")
 
 
-def load_part_geometry(scene: Scene, parts_npz: str | Path | None = None) -> PartGeometry:
-    """Read parts.npz next to the scene's object (or `parts_npz`) and map its bodies to the scene's body ids."""
+def load_parts(scene: Scene, parts_npz: str | Path | None = None) -> tuple[PartGeometry, PartNames]:
+    """Read parts.npz next to the scene's object (or `parts_npz`), map its bodies to the scene's body ids and lay the
+    rows out as PartGeometry describes."""
     path = Path(parts_npz) if parts_npz else scene.object_xml.parent / "parts.npz"
     if not path.is_file():
         raise AssetError(f"missing part point file: {path}")
@@ -69,10 +96,11 @@ def load_part_geometry(scene: Scene, parts_npz: str | Path | None = None) -> Par
     except KeyError as err:
         raise AssetError(f"{path}: body {err} is not in {scene.object_xml}") from err
     names = [str(n) for n in data["part_names"]]
+    semantic_rows = -(-max(len(names), 1) // SEMANTIC_ROWS) * SEMANTIC_ROWS
     object_points = data["object_points"]
     m = len(object_points)
     semantic = data["points"][:, :m]
-    rows = len(names) + len(SPATIAL_PARTS) + 1
+    rows = semantic_rows + len(SPATIAL_PARTS) + 1
     points = np.zeros((rows, m, 3), np.float32)
     normals = np.zeros((rows, m, 3), np.float32)
     bodies = np.zeros((rows, m), np.int32)
@@ -81,17 +109,24 @@ def load_part_geometry(scene: Scene, parts_npz: str | Path | None = None) -> Par
     normals[: len(names), : semantic.shape[1]] = data["normals"][:, :m]
     bodies[: len(names), : semantic.shape[1]] = body_ids[data["point_body"][:, :m]]
     valid[: len(names), : semantic.shape[1]] = True
-    points[len(names):] = object_points
-    normals[len(names):] = data["object_normals"]
-    bodies[len(names):] = body_ids[data["object_point_body"]]
-    valid[len(names):] = True
-    geom_part = np.full(model.ngeom, -1, np.int32)
+    points[semantic_rows:] = object_points
+    normals[semantic_rows:] = data["object_normals"]
+    bodies[semantic_rows:] = body_ids[data["object_point_body"]]
+    valid[semantic_rows:] = True
+    part_names = PartNames(tuple(names), semantic_rows)
+    geom_part = np.full(-(-model.ngeom // GEOM_ROWS) * GEOM_ROWS, -1, np.int32)
     for g in range(model.ngeom):
         if scene.geom_part[g] >= 0:
             label = scene.part_names[scene.geom_part[g]]
-            geom_part[g] = names.index(label) if label in names else len(names) + len(SPATIAL_PARTS)
-    return PartGeometry(jnp.asarray(points), jnp.asarray(normals), jnp.asarray(bodies), jnp.asarray(valid), jnp.asarray(geom_part),
-                        names=tuple(names) + SPATIAL_PARTS + ("",), num_semantic=len(names))
+            geom_part[g] = names.index(label) if label in names else part_names.whole
+    geometry = PartGeometry(jnp.asarray(points), jnp.asarray(normals), jnp.asarray(bodies), jnp.asarray(valid),
+                            jnp.asarray(geom_part), num_semantic=semantic_rows)
+    return geometry, part_names
+
+
+def load_part_geometry(scene: Scene, parts_npz: str | Path | None = None) -> PartGeometry:
+    """`load_parts` without the labels."""
+    return load_parts(scene, parts_npz)[0]
 
 
 def world_points(body_pos: jnp.ndarray, body_quat: jnp.ndarray, points: jnp.ndarray, bodies: jnp.ndarray):

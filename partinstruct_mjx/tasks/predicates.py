@@ -162,7 +162,7 @@ def batch_part_facts(state, geo: PartGeometry, masks: jnp.ndarray) -> PartFacts:
                            lambda: jnp.zeros((batch, 2, spatial), bool))
     closed = jax.vmap(fingers_closed)(state).any()
     tips = jax.lax.cond(closed, lambda: jax.vmap(tip_near, in_axes=(0, None, 0))(state, geo, masks),
-                        lambda: jnp.zeros((batch, len(geo.names)), bool))
+                        lambda: jnp.zeros((batch, geo.points.shape[0]), bool))
     return jax.vmap(_facts, in_axes=(0, None, 0, 0, 0))(state, geo, masks, regions, tips)
 
 

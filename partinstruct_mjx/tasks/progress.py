@@ -13,7 +13,7 @@ from flax import struct
 
 from partinstruct_mjx.errors import TaskError
 from partinstruct_mjx.tasks import predicates
-from partinstruct_mjx.tasks.part_geometry import PartGeometry, spatial_masks
+from partinstruct_mjx.tasks.part_geometry import PartGeometry, PartNames, spatial_masks
 from partinstruct_mjx.tasks.skills import SkillStep
 from partinstruct_mjx.tasks.task_types import ANY_PART, Goal, task_type
 from partinstruct_mjx.tasks.vocabulary import UNIT_DISTANCE, direction_vector
@@ -78,16 +78,16 @@ def _fill(rows: dict, index: tuple, goals: list[tuple]) -> None:
         rows["threshold"][(*index, g)] = threshold
 
 
-def skill_goals(step: SkillStep, geo: PartGeometry) -> list[tuple]:
+def skill_goals(step: SkillStep, names: PartNames) -> list[tuple]:
     """The effects of one skill (spec 5.2) as goal tuples (kind, part, direction, offset, threshold)."""
-    zero, whole = np.zeros(3), geo.whole
+    zero, whole = np.zeros(3), names.whole
     if step.name == "grasp_obj":
-        return [("GRASPING", geo.index(step.part), zero, zero, 0.0)]
+        return [("GRASPING", names.index(step.part), zero, zero, 0.0)]
     if step.name == "touch_obj":
-        return [("TOUCHING", geo.index(step.part), zero, zero, 0.0)]
+        return [("TOUCHING", names.index(step.part), zero, zero, 0.0)]
     if step.name == "rotate_obj":
         return [("GRASPING", whole, zero, zero, 0.0),
-                ("FACING", geo.index(step.part), direction_vector(step.direction), zero, predicates.FACING_ANGLE)]
+                ("FACING", names.index(step.part), direction_vector(step.direction), zero, predicates.FACING_ANGLE)]
     if step.name == "release_obj":
         return [("RELEASED", whole, zero, zero, 0.0)]
     goals = []
@@ -102,9 +102,9 @@ def skill_goals(step: SkillStep, geo: PartGeometry) -> list[tuple]:
     return goals
 
 
-def phase_goals(goal: Goal, parts: dict, directions: dict, geo: PartGeometry) -> tuple:
+def phase_goals(goal: Goal, parts: dict, directions: dict, names: PartNames) -> tuple:
     zero = np.zeros(3)
-    part = geo.whole if goal.part in (None, ANY_PART) else geo.index(parts[goal.part])
+    part = names.whole if goal.part in (None, ANY_PART) else names.index(parts[goal.part])
     if goal.kind == "FACING":
         return ("FACING", part, direction_vector(directions[goal.direction]), zero, goal.threshold)
     if goal.kind == "AT":
@@ -113,7 +113,7 @@ def phase_goals(goal: Goal, parts: dict, directions: dict, geo: PartGeometry) ->
     return (goal.kind, part, zero, zero, goal.threshold)
 
 
-def compile_episodes(episodes: list[tuple[int, list[SkillStep]]], geo: PartGeometry) -> dict:
+def compile_episodes(episodes: list[tuple[int, list[SkillStep]]], names: PartNames) -> dict:
     """Host arrays of skill goals, phase goals and flags for (task type, chain) pairs; validates every part."""
     batch = len(episodes)
     skills, phases = _empty_rows(batch, MAX_SKILLS, MAX_GOALS), _empty_rows(batch, MAX_PHASES, MAX_GOALS)
@@ -124,10 +124,10 @@ def compile_episodes(episodes: list[tuple[int, list[SkillStep]]], geo: PartGeome
         if len(chain) > MAX_SKILLS:
             raise TaskError(f"a chain of {len(chain)} skills exceeds {MAX_SKILLS}")
         for s, step in enumerate(chain):
-            _fill(skills, (b, s), skill_goals(step, geo))
+            _fill(skills, (b, s), skill_goals(step, names))
         task = task_type(type_id)
         for p, goals in enumerate(task.phases):
-            _fill(phases, (b, p), [phase_goals(g, parts, directions, geo) for g in goals])
+            _fill(phases, (b, p), [phase_goals(g, parts, directions, names) for g in goals])
         num_skills[b], num_phases[b] = len(chain), len(task.phases)
         freeze[b] = type_id in FROZEN_SPATIAL_TYPES
     return {"skills": skills, "phases": phases, "num_skills": num_skills, "num_phases": num_phases,

@@ -1,0 +1,56 @@
+"""Where a fingertip can push an object along a direction without tipping it or turning it away.
+
+A push slides the object against table friction (MuJoCo's 0.5 between object and table): pressing at height h
+above the table with the object about to slide, the object tips over its leading bottom edge unless
+TABLE_FRICTION * h < the horizontal distance from its centre of mass to that edge. A push off the line through the
+object's middle turns it. So a push point is a point of the touched part on its face towards the pusher, at least
+TIP_CLEARANCE above the table (the closed pads' round tips), close to the line through the middle along the push,
+and low enough not to tip the object (with a margin); the lowest such point, nearest that line, is taken.
+Used by episode generation (can this part be pushed this way?) and by the oracle (where to touch and push).
+Pure JAX for one object; numpy inputs are fine.
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+
+TABLE_FRICTION = 0.5
+"""Friction between objects and the table (the scene's table geom and the converter's object geoms)."""
+TIP_MARGIN = 0.7
+"""Share of the tipping height a push may use."""
+TIP_CLEARANCE = 0.009
+"""Lowest push point above the table (m): the closed pads' round tips stay off the table."""
+FACE_BAND = 0.012
+"""Points this close (m) to the part's extreme towards the pusher make up its face."""
+CENTRE_BAND = 0.3
+"""A push point lies within this share of the object's width across the push (at least MIN_CENTRE_BAND) of the
+line through its middle."""
+MIN_CENTRE_BAND = 0.015
+BASE_BAND = 0.01
+"""Object points this close (m) to its lowest point make up its footprint on the table."""
+
+
+def push_point(part_points, part_valid, object_points, object_valid, direction):
+    """The push point (3,) on the part for a push along the horizontal unit `direction`, and whether one exists.
+
+    Points are world-frame (M, 3) with validity masks (M,).
+    """
+    flat = jnp.array([1.0, 1.0, 0.0])
+    direction = direction * flat
+    bottom = jnp.where(object_valid, object_points[:, 2], jnp.inf).min()
+    base = object_valid & (object_points[:, 2] < bottom + BASE_BAND)
+    centre = (object_points * object_valid[:, None]).sum(0) / jnp.maximum(object_valid.sum(), 1)
+    # Distance from the centre of mass to the leading bottom edge; the object's width across the push.
+    lead = jnp.where(base, (object_points - centre) @ direction, -jnp.inf).max()
+    across = jnp.cross(jnp.array([0.0, 0.0, 1.0]), direction)
+    side = jnp.where(object_valid, object_points @ across, jnp.nan)
+    width = jnp.nanmax(side) - jnp.nanmin(side)
+    tip_height = TIP_MARGIN * lead / TABLE_FRICTION
+    behind = jnp.where(part_valid, -(part_points @ direction), -jnp.inf)
+    height = part_points[:, 2] - bottom
+    lateral = jnp.abs((part_points - centre) @ across)
+    usable = (part_valid & (behind > behind.max() - FACE_BAND) & (height >= TIP_CLEARANCE)
+              & (height <= tip_height) & (lateral <= jnp.maximum(MIN_CENTRE_BAND, CENTRE_BAND * width)))
+    cost = height + 2.0 * lateral
+    best = jnp.argmin(jnp.where(usable, cost, jnp.inf))
+    return part_points[best], usable.any()

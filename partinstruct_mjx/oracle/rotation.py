@@ -1,0 +1,132 @@
+"""Rotation plans: which turn of the held object brings a part's direction onto a goal, and which turn the arm can make.
+
+FACING holds for every rotation that maps the part's direction v (from the object origin to the part's mean point)
+onto the goal d: the shortest arc from v to d followed by any twist about d. In the air the oracle considers
+NUM_TWISTS of them, each about two pivots (the object's origin, which keeps the object where the carries put it, and
+the TCP, which keeps the hand where it is); on the table only yaw turns keep the object standing, the short way round
+or the long way. The hand follows the object rigidly, so a turn R about pivot k takes the TCP pose (p, q) to
+(k + R (p - k), R q). An option is kept when the batched JAX IK reaches the TCP at every sixth of the way along it,
+each from the previous solution without a joint jumping, and the turned object stays above the table (the hand is raised for it
+where needed); the cheapest kept option (turn angle, object displacement, raise) wins. Pure JAX for one environment.
+"""
+
+from __future__ import annotations
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from partinstruct_mjx.control import jax_ik
+from partinstruct_mjx.control.rotations import axis_angle_to_quat, quat_multiply, quat_rotate
+from partinstruct_mjx.sim.scene import TABLE_HEIGHT
+
+NUM_TWISTS = 8
+"""Twists about the goal direction tried in the air (evenly spaced)."""
+TABLE_CLEARANCE = 0.02
+"""Lowest point of an object turned in the air stays this far above the table (m)."""
+MAX_DISPLACEMENT = 0.05
+"""Object origin displacement (m) beyond which an option is penalised hard (AT checks allow 0.05-0.08)."""
+REACH_CONFIG = jax_ik.IKConfig(iterations=15)
+FRACTIONS = tuple(k / 6.0 for k in range(1, 7))
+"""Points along a turn where the IK must reach the TCP, each from the previous solution."""
+MAX_JOINT_JUMP = 0.8
+"""Largest joint change (rad) between two of those points: the env's IK follows the turn in small steps, so a
+solution that only an elbow or wrist flip reaches is not one the arm can turn through."""
+UP = np.array([0.0, 0.0, 1.0], np.float32)
+
+
+def arc(v: jnp.ndarray, d: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray]:
+    """Axis (3,) and angle of the shortest rotation taking unit vector v onto unit vector d (any perpendicular axis,
+    preferring a horizontal one, when they are opposite)."""
+    axis = jnp.cross(v, d)
+    norm = jnp.linalg.norm(axis)
+    angle = jnp.arctan2(norm, v @ d)
+    fallback = jnp.cross(v, jnp.asarray(UP))
+    fallback = jnp.where(jnp.linalg.norm(fallback) < 1e-3, jnp.cross(v, jnp.array([1.0, 0.0, 0.0])), fallback)
+    axis = jnp.where(norm < 1e-4, fallback, axis)
+    return axis / jnp.linalg.norm(axis), angle
+
+
+def quat_to_axis_angle(q: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray]:
+    """Unit axis and angle in [0, pi] of a unit quaternion (w, x, y, z)."""
+    q = jnp.where(q[0] < 0, -q, q)
+    s = jnp.linalg.norm(q[1:])
+    angle = 2.0 * jnp.arctan2(s, q[0])
+    axis = jnp.where(s < 1e-8, jnp.asarray(UP), q[1:] / jnp.maximum(s, 1e-8))
+    return axis, angle
+
+
+def options(v: jnp.ndarray, d: jnp.ndarray, on_table: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray, jnp.ndarray]:
+    """Candidate turns: axes (N, 3), angles (N,) and validity (N,), N = 2 * NUM_TWISTS.
+
+    In the air: each twist about d after the shortest arc, once per pivot (rows [:NUM_TWISTS] about the object's
+    origin, the rest about the TCP). On the table: the yaw turn the short way and the long way (about the TCP).
+    """
+    v = v / jnp.maximum(jnp.linalg.norm(v), 1e-9)
+    arc_axis, arc_angle = arc(v, d)
+    arc_quat = axis_angle_to_quat(arc_axis, arc_angle)
+    twists = jnp.asarray(np.arange(NUM_TWISTS) * 2 * math.pi / NUM_TWISTS, jnp.float32)
+    quats = jax.vmap(lambda phi: quat_multiply(axis_angle_to_quat(d, phi), arc_quat))(twists)
+    air_axes, air_angles = jax.vmap(quat_to_axis_angle)(quats)
+    # Yaw on the table: signed angle from v to d in the horizontal plane, and the long way round.
+    yaw = jnp.arctan2(v[0] * d[1] - v[1] * d[0], v[0] * d[0] + v[1] * d[1])
+    long_way = yaw - 2 * math.pi * jnp.sign(yaw)
+    yaws = jnp.zeros(NUM_TWISTS).at[0].set(yaw).at[1].set(long_way)
+    table_axes = jnp.tile(jnp.asarray(UP), (NUM_TWISTS, 1)) * jnp.sign(yaws + 1e-9)[:, None]
+    table_valid = jnp.arange(NUM_TWISTS) < 2
+    axes = jnp.where(on_table, jnp.concatenate([table_axes, table_axes]), jnp.concatenate([air_axes, air_axes]))
+    angles = jnp.where(on_table, jnp.concatenate([jnp.abs(yaws), jnp.abs(yaws)]),
+                       jnp.concatenate([air_angles, air_angles]))
+    valid = jnp.where(on_table, jnp.concatenate([jnp.zeros(NUM_TWISTS, bool), table_valid]),
+                      jnp.ones(2 * NUM_TWISTS, bool))
+    return axes, angles, valid
+
+
+def turned_pose(pivot, axis, angle, fraction, hand_pos, hand_quat):
+    """TCP pose after turning `fraction` of the way about `axis` through `pivot`."""
+    turn = axis_angle_to_quat(axis, fraction * angle)
+    pos = pivot + quat_rotate(turn, hand_pos - pivot)
+    quat = quat_multiply(turn, hand_quat)
+    return pos, quat / jnp.linalg.norm(quat)
+
+
+def plan(kinematics, q, hand_pos, hand_quat, object_pos, object_points, object_valid, v, d, on_table):
+    """The turn to make: (found, axis (3,), angle, pivot (3,), raise, joints (7,) at its end) for one environment.
+
+    q: the arm's joint targets now; hand_pos/hand_quat: the commanded TCP pose the turn starts from; object_points
+    (M, 3) world; v: the part's direction now (unnormalised is fine); d: the goal direction; on_table: yaw only.
+    """
+    axes, angles, valid = options(v, d, on_table)
+    pivots = jnp.concatenate([jnp.tile(object_pos, (NUM_TWISTS, 1)), jnp.tile(hand_pos, (NUM_TWISTS, 1))])
+
+    def evaluate(axis, angle, pivot):
+        def lowest(fraction):
+            turn = axis_angle_to_quat(axis, fraction * angle)
+            moved = pivot + quat_rotate(turn, object_points - pivot)
+            return jnp.where(object_valid, moved[:, 2], jnp.inf).min()
+
+        raise_by = jnp.where(on_table, 0.0, jnp.maximum(
+            0.0, TABLE_HEIGHT + TABLE_CLEARANCE - jnp.minimum(lowest(0.5), lowest(1.0))))
+
+        def follow(carry, fraction):
+            joints, ok = carry
+            pos, quat = turned_pose(pivot, axis, angle, fraction, hand_pos, hand_quat)
+            pos = pos + raise_by * jnp.asarray(UP) * jnp.minimum(1.0, 2 * fraction)
+            reached, position_error, rotation_error = jax_ik._solve_one(kinematics, REACH_CONFIG, joints, pos, quat)
+            ok = (ok & (position_error < 0.005) & (rotation_error < 0.05)
+                  & (jnp.abs(reached - joints).max() < MAX_JOINT_JUMP))
+            return (reached, ok), None
+
+        (joints, ok), _ = jax.lax.scan(follow, (q, jnp.asarray(True)), jnp.asarray(FRACTIONS, jnp.float32))
+        displacement = jnp.linalg.norm(pivot + quat_rotate(axis_angle_to_quat(axis, angle), object_pos - pivot)
+                                       - object_pos) + raise_by
+        cost = (angle + 4.0 * displacement + 20.0 * jnp.maximum(displacement - MAX_DISPLACEMENT, 0.0)
+                + 3.0 * raise_by)
+        return ok, cost, raise_by, joints
+
+    ok, cost, raise_by, joints = jax.vmap(evaluate)(axes, angles, pivots)
+    ok = ok & valid
+    best = jnp.argmin(jnp.where(ok, cost, jnp.inf))
+    return ok.any(), axes[best], angles[best], pivots[best], raise_by[best], joints[best]
