@@ -227,6 +227,7 @@ def generate_episodes(catalog: list[dict], assets_root: str | os.PathLike, seed:
     Deterministic: episode i of (split, category, type) is drawn from a generator seeded with (seed, split,
     category, type, i), so adding a split or a category leaves the other draws unchanged; ep_ids count within
     their split from split index x SPLIT_ID_STRIDE, so adding a split leaves the other ids unchanged too.
+    Test 3 has no episode where no held-out part combination can be done on the category's objects.
     """
     unknown = [s for s in splits if s not in SPLITS]
     if unknown:
@@ -251,8 +252,15 @@ def generate_episodes(catalog: list[dict], assets_root: str | os.PathLike, seed:
                     episode_seed = int(np.random.SeedSequence(
                         [seed, zlib.crc32(split.encode()), zlib.crc32(category.encode()), type_id, i]
                     ).generate_state(1)[0])
-                    episodes.append(_draw(objects, Path(assets_root), split, type_id, held_out, episode_seed,
-                                          SPLITS.index(split) * SPLIT_ID_STRIDE + index))
+                    try:
+                        episodes.append(_draw(objects, Path(assets_root), split, type_id, held_out, episode_seed,
+                                              SPLITS.index(split) * SPLIT_ID_STRIDE + index))
+                    except TaskError:
+                        # Test 3's held-out part combinations are fixed by name; where none of them can be done on
+                        # the category's objects (a bucket's wall under its bail cannot be grasped) the cell stays
+                        # empty. Every other split has some valid task for every category and type.
+                        if split != "test3":
+                            raise
                     index += 1
     return episodes
 
@@ -266,14 +274,13 @@ def _draw(objects: list[dict], assets_root: Path, split: str, type_id: int, held
     for _ in range(MAX_ATTEMPTS):
         entry = objects[rng.integers(len(objects))]
         x, y, yaw = rng.uniform(*OBJECT_X_RANGE), rng.uniform(*OBJECT_Y_RANGE), rng.uniform(-math.pi, math.pi)
-        views = slot_rules.part_views(slot_rules.load_object_geometry(str(assets_root / entry["path"])), yaw)
+        object_dir = str(assets_root / entry["path"])
+        views = slot_rules.part_views(slot_rules.load_object_geometry(object_dir), yaw)
         options = [(parts, dirs) for parts, dirs in slot_rules.feasible_assignments(type_id, category, views, (x, y))
                    if _split_admits(split, slot_rules.combination(type_id, parts) in held_out)]
-        if options:
-            kinds = sorted({_part_kinds(type_id, parts) for parts, _ in options})
-            kind = kinds[rng.integers(len(kinds))]
-            options = [option for option in options if _part_kinds(type_id, option[0]) == kind]
-            parts, choices = options[rng.integers(len(options))]
+        drawn = _draw_graspable(options, type_id, rng, lambda part: slot_rules.graspable(object_dir, yaw, part))
+        if drawn is not None:
+            parts, choices = drawn
             directions = {slot: words[rng.integers(len(words))] for slot, words in choices.items()}
             obj_class = category.replace("_", " ")
             chain = tuple(task_type(type_id).build_chain(parts, directions))
@@ -284,6 +291,26 @@ def _draw(objects: list[dict], assets_root: Path, split: str, type_id: int, held
                            float(entry["scale"]), episode_seed)
     raise TaskError(f"no valid {split} episode of type {type_id} for {category} after {MAX_ATTEMPTS} object and "
                     f"pose draws (seed {episode_seed}); its parts do not fit the slot rules")
+
+
+def _draw_graspable(options: list, type_id: int, rng: np.random.Generator, graspable) -> tuple | None:
+    """Draw an assignment (first which named parts are spatial, then the assignment) whose grasped parts the gripper
+    can close on; an assignment with a part `graspable` rejects is dropped with every other one grasping it. The
+    grasp check is the costly rule, so it runs only on drawn parts (once each)."""
+    grasped = [slot for slot, role in slot_rules.part_roles(type_id).items() if role == "grasp"]
+    verdicts: dict[str, bool] = {}
+    while options:
+        kinds = sorted({_part_kinds(type_id, parts) for parts, _ in options})
+        kind = kinds[rng.integers(len(kinds))]
+        mine = [option for option in options if _part_kinds(type_id, option[0]) == kind]
+        parts, choices = mine[rng.integers(len(mine))]
+        for slot in grasped:
+            if parts[slot] not in verdicts:
+                verdicts[parts[slot]] = graspable(parts[slot])
+        if all(verdicts[parts[slot]] for slot in grasped):
+            return parts, choices
+        options = [option for option in options if all(verdicts.get(option[0][slot], True) for slot in grasped)]
+    return None
 
 
 def _part_kinds(type_id: int, parts: dict[str, str]) -> tuple[bool, ...]:

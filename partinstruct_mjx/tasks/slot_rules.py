@@ -10,16 +10,18 @@ points at its rest configuration turned by the episode's yaw:
   oracle's touch test, spec 8.5, compares with the whole object's box, which hides e.g. a bottle's neck behind
   its wider body);
 * never a cavity (CAVITIES) or 'middle'; never grasped or touched at the 'bottom' (it rests on the table);
-* grasp: exposed, the smallest extent of the part's box <= 0.07 m (the gripper opens 8 cm), and either rising
-  >= 2 cm above the object's lowest point or at most 0.07 m wide horizontally (a flat part lying on the table, like
-  a laptop's base frame, can only be pinched from above across its width); not in GRASP_EXCLUDED;
+* grasp: exposed, not in GRASP_EXCLUDED, and `graspable`: the oracle's grasp search finds grasps the Panda hand
+  can close on (a section under 7.4 cm, pads and hand free of the object, pads above the table, landing faces
+  facing the pads); a 2 mm scissors blade lying flat, or a pot's wall under its lid, are not. `feasible_assignments`
+  applies the cheap rules; the episode generator asks `graspable` only for the parts of the assignment it draws;
 * touch: exposed;
 * rotate: centroid >= 2 cm from the object origin (FACING is measured from it);
   in the air any direction but the one the part faces now; on the table only horizontal ones and only for parts
   that face a horizontal direction now (a yaw turn cannot change a part that faces up); type 15 turns the part to
   the opposite of the direction it faces now;
 * move / push: horizontal, the object stays in the workspace (p0 + 0.12 dir within WORKSPACE); a push towards dir
-  touches the part from the other side, so the part must be exposed on OPPOSITE[dir];
+  touches the part from the other side, so the part must be exposed on OPPOSITE[dir] and have a push point there
+  (oracle/pushing.py: low enough not to tip the object, near the line through its middle);
 * the parts of one episode are distinct (the paper rotates a part while holding another one).
 
 Test 3 holds out part combinations (see `held_out_combinations`).
@@ -37,10 +39,13 @@ from pathlib import Path
 from types import MappingProxyType
 
 import jax
+import jax.numpy as jnp
 import mujoco
 import numpy as np
 
 from partinstruct_mjx.errors import AssetError
+from partinstruct_mjx.oracle import candidates, pushing
+from partinstruct_mjx.sim.scene import TABLE_HEIGHT
 from partinstruct_mjx.tasks.instructions import instruction_slots
 from partinstruct_mjx.tasks.part_geometry import spatial_masks
 from partinstruct_mjx.tasks.task_types import task_type
@@ -63,11 +68,10 @@ SPATIAL_WORDS = tuple(DIRECTIONS)
 APPROACHES = ("left", "right", "front", "back", "top")
 """Directions the gripper comes from (never from below the table)."""
 
-MAX_GRASP_WIDTH = 0.07
-"""Widest cross-section (m) the gripper (8 cm opening) is asked to close on."""
-
-MIN_GRASP_HEIGHT = 0.02
-"""A part lower than this (m) above the table can only be pinched from above across its horizontal width."""
+MIN_GRASPS = 3
+"""A part is graspable when the oracle's candidate search finds at least this many valid grasps on it."""
+GRASP_CHECK_SEEDS = 16
+"""Seed points per part of that search (the oracle itself samples candidates.NUM_SEEDS per attempt)."""
 
 MIN_FACING_OFFSET = 0.02
 """Closest a rotated part's centroid may be to the object origin (m) for FACING to be well defined."""
@@ -83,7 +87,8 @@ HELD_OUT_FRACTION = 0.25
 
 @dataclass(frozen=True)
 class ObjectGeometry:
-    """Surface points of an object at rest (all joints at 0) in its root frame, per semantic part and whole.
+    """Surface points and outward normals of an object at rest (all joints at 0) in its root frame, per semantic
+    part and whole.
 
     Arrays are (3, N): reductions over points run along contiguous rows.
     """
@@ -91,24 +96,23 @@ class ObjectGeometry:
     part_names: tuple[str, ...]
     part_points: tuple[np.ndarray, ...]
     object_points: np.ndarray
+    part_normals: tuple[np.ndarray, ...]
+    object_normals: np.ndarray
 
 
 @dataclass(frozen=True)
 class PartView:
     """What the slot rules need to know about one part at the episode's initial pose."""
 
-    width: float
-    """Smallest extent of the part's box in the object frame (m)."""
-    horizontal_width: float
-    """Smallest horizontal extent of that box (m): what a top-down pinch closes on."""
-    height: float
-    """How far the part rises above the object's lowest point (m)."""
     offset: np.ndarray
     """World-frame vector from the object origin to the part centroid (FACING's vector)."""
     facing: str
     """The direction word nearest to `offset`: where the part faces at the initial pose."""
     exposed: frozenset[str]
     """Approach directions from which the part is free."""
+    pushable: frozenset[str]
+    """Horizontal directions a fingertip on the part can push the object along (oracle/pushing.py: pressing low
+    enough not to tip it, near the line through its middle)."""
 
 
 @functools.lru_cache(maxsize=None)
@@ -126,12 +130,15 @@ def load_object_geometry(object_dir: str) -> ObjectGeometry:
     body_ids = [mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, str(name)) for name in data["body_names"]]
     rotations, origins = state.xmat.reshape(-1, 3, 3)[body_ids], state.xpos[body_ids]
 
-    def to_root(points, bodies):
-        return np.ascontiguousarray((np.einsum("nij,nj->ni", rotations[bodies], points) + origins[bodies]).T)
+    def to_root(points, bodies, moved=True):
+        turned = np.einsum("nij,nj->ni", rotations[bodies], points)
+        return np.ascontiguousarray((turned + origins[bodies] if moved else turned).T)
 
     return ObjectGeometry(tuple(str(n) for n in data["part_names"]),
                           tuple(to_root(p, b) for p, b in zip(data["points"], data["point_body"])),
-                          to_root(data["object_points"], data["object_point_body"]))
+                          to_root(data["object_points"], data["object_point_body"]),
+                          tuple(to_root(n, b, False) for n, b in zip(data["normals"], data["point_body"])),
+                          to_root(data["object_normals"], data["object_point_body"], False))
 
 
 def yaw_matrix(yaw: float) -> np.ndarray:
@@ -149,23 +156,74 @@ def part_views(geometry: ObjectGeometry, yaw: float) -> dict[str, PartView]:
     original does at reset) of the object turned by `yaw`."""
     rotation = yaw_matrix(yaw)
     world = rotation @ geometry.object_points
-    bottom = geometry.object_points[2].min()
     points = dict(zip(geometry.part_names, geometry.part_points))
     masks = np.asarray(_spatial_masks(world.T))
     points.update({word: geometry.object_points[:, masks[SPATIAL_PARTS.index(word)]] for word in SPATIAL_WORDS})
-    return {name: _view(local, rotation, bottom, world) for name, local in points.items()}
+    return {name: _view(local, rotation, world) for name, local in points.items()}
 
 
-def _view(local: np.ndarray, rotation: np.ndarray, bottom: float, object_world: np.ndarray) -> PartView:
+def graspable(object_dir: str, yaw: float, part: str) -> bool:
+    """The gripper can close on `part` of the object resting on the table turned by `yaw`: the oracle's grasp
+    search (oracle/candidates.py: something between the pads, pads and hand free of the object, above the table,
+    antipodal landing faces) finds at least MIN_GRASPS grasps on it. The arm's reach is not part of it.
+
+    Deterministic (a fixed key). A semantic part is judged once per object, at yaw 0 (its shape does not turn with
+    the yaw); a spatial part is a region of the turned object, so it is judged at `yaw`.
+    """
+    if part not in SPATIAL_PARTS:
+        return _semantic_graspable(object_dir, part)
+    geometry = load_object_geometry(object_dir)
+    rotation = yaw_matrix(yaw)
+    mask = np.asarray(_spatial_masks((rotation @ geometry.object_points).T))[SPATIAL_PARTS.index(part)]
+    return _grasps_found(geometry, rotation, geometry.object_points, geometry.object_normals, mask)
+
+
+@functools.lru_cache(maxsize=None)
+def _semantic_graspable(object_dir: str, part: str) -> bool:
+    geometry = load_object_geometry(object_dir)
+    index = geometry.part_names.index(part)
+    points = geometry.part_points[index]
+    return _grasps_found(geometry, np.eye(3), points, geometry.part_normals[index], np.ones(points.shape[1], bool))
+
+
+def _grasps_found(geometry: ObjectGeometry, rotation: np.ndarray, points, normals, valid) -> bool:
+    lift = np.array([0.0, 0.0, TABLE_HEIGHT - (rotation @ geometry.object_points)[2].min()])[:, None]
+
+    def world(p, n):
+        return (rotation @ p + lift).T.astype(np.float32), (rotation @ n).T.astype(np.float32)
+
+    whole = world(geometry.object_points[:, ::2], geometry.object_normals[:, ::2])
+    count = _count_grasps(*whole, np.ones(whole[0].shape[0], bool), *world(points, normals), valid)
+    return int(count) >= MIN_GRASPS
+
+
+@jax.jit
+def _count_grasps(object_points, object_normals, object_valid, part_points, part_normals, part_valid):
+    grasps = candidates.grasp_candidates(object_points, object_normals, object_valid, part_points, part_normals,
+                                         part_valid, jax.random.PRNGKey(0), num_seeds=GRASP_CHECK_SEEDS)
+    return jnp.isfinite(grasps["score"]).sum()
+
+
+def _view(local: np.ndarray, rotation: np.ndarray, object_world: np.ndarray) -> PartView:
     world = rotation @ local
     lo, hi = world.min(axis=1), world.max(axis=1)
     free = _reach(lo, hi) + 0.1 * np.linalg.norm(hi - lo) >= _reach_at_level(object_world, lo, hi)
-    local_lo, local_hi = local.min(axis=1), local.max(axis=1)
-    extent = local_hi - local_lo
     offset = world.mean(axis=1)
-    return PartView(width=float(extent.min()), horizontal_width=float(extent[:2].min()),
-                    height=float(local_hi[2] - bottom), offset=offset, facing=nearest_direction(offset),
-                    exposed=frozenset(word for word, ok in zip(APPROACHES, free) if ok))
+    size = object_world.shape[1]
+    padded = np.zeros((size, 3), np.float32)
+    padded[: world.shape[1]] = world.T
+    ok = np.asarray(_pushable(padded, np.arange(size) < world.shape[1], object_world.T.astype(np.float32)))
+    return PartView(offset=offset, facing=nearest_direction(offset),
+                    exposed=frozenset(word for word, ok in zip(APPROACHES, free) if ok),
+                    pushable=frozenset(word for word, good in zip(HORIZONTAL, ok) if good))
+
+
+@jax.jit
+def _pushable(part_points, part_valid, object_points):
+    """Per HORIZONTAL word, whether the part has a push point for a push that way."""
+    directions = jnp.asarray([DIRECTIONS[word] for word in HORIZONTAL], jnp.float32)
+    valid = jnp.ones(object_points.shape[0], bool)
+    return jax.vmap(lambda d: pushing.push_point(part_points, part_valid, object_points, valid, d)[1])(directions)
 
 
 def _reach(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
@@ -224,8 +282,7 @@ def allowed_by_name(role: str, category: str, part: str) -> bool:
 def fits_role(role: str, view: PartView) -> bool:
     """The rules that depend on the part's geometry at the initial pose."""
     if role == "grasp":
-        return (bool(view.exposed) and view.width <= MAX_GRASP_WIDTH
-                and (view.height >= MIN_GRASP_HEIGHT or view.horizontal_width <= MAX_GRASP_WIDTH))
+        return bool(view.exposed)
     if role == "touch":
         return bool(view.exposed)
     return float(np.linalg.norm(view.offset)) >= MIN_FACING_OFFSET
@@ -236,7 +293,7 @@ def direction_candidates(role: str, view: PartView | None, moves: list[str]) -> 
     if role == "move":
         return moves
     if role == "push":
-        return [w for w in moves if OPPOSITE[w] in view.exposed]
+        return [w for w in moves if OPPOSITE[w] in view.exposed and w in view.pushable]
     facing = view.facing
     if role == "rotate_air":
         return [w for w in DIRECTIONS if w != facing]
