@@ -61,7 +61,7 @@ def test_grasp_candidates_close_on_the_part(episodes):
 
 
 def test_touch_before_a_push_comes_from_behind_first(episodes):
-    episode = next(e for e in episodes if e.task_type == 4)
+    episode = next(e for e in episodes if e.task_type == 4 and e.obj_class == "box")
     push = episode.chain[1].direction
     with _env(episode) as env:
         state = env.reset(jax.random.PRNGKey(0), [episode])

@@ -33,6 +33,8 @@ PAD_INNER = 0.038
 """Inner face of an open pad (0.04) from the grasp centre, less a margin: no object point may lie in the pads."""
 HAND_BACK = 0.028
 """The hand capsule starts this far behind the pads' middle (along the approach, plus margin)."""
+HAND_RADIUS = 0.028
+"""Radius of the hand's collision capsule (across the fingers' closing axis)."""
 HAND_HALF_WIDTH = 0.032
 HAND_HALF_LENGTH = 0.12
 TABLE_CLEARANCE = 0.002
@@ -177,13 +179,18 @@ def _pad_corners(centre, approach, closing, across):
     return centre[2] + corners @ jnp.stack([across[2], closing[2], approach[2]])
 
 
+def _table_back_off(centre, approach, closing, across):
+    """Metres a downward grasp at `centre` backs off along its approach so the open pads' tips clear the table."""
+    deficit = TABLE_HEIGHT + TABLE_CLEARANCE + 0.001 - _pad_corners(centre, approach, closing, across)[:4].min()
+    downward = approach[2] < -MIN_APPROACH_COMPONENT
+    return jnp.where(downward & (deficit > 0), deficit / jnp.maximum(-approach[2], 1e-3), 0.0)
+
+
 def _clear_pad_tips(centre, approach, closing, across, object_points, object_valid):
     """The grasp centre backed off along the approach until the open pads' tips stop short of the table (downward
     grasps of flat parts) and of the object surface ahead of them (a lid's knob over the lid): what is left
     between the pads is what they pinch (at most PAD_HALF_LENGTH of back-off for the surface)."""
-    deficit = TABLE_HEIGHT + TABLE_CLEARANCE + 0.001 - _pad_corners(centre, approach, closing, across)[:4].min()
-    downward = approach[2] < -MIN_APPROACH_COMPONENT
-    table = jnp.where(downward & (deficit > 0), deficit / jnp.maximum(-approach[2], 1e-3), 0.0)
+    table = _table_back_off(centre, approach, closing, across)
     d = object_points - centre
     u, v, t = d @ across, d @ closing, d @ approach
     ahead = (object_valid & (jnp.abs(u) < PAD_HALF_WIDTH + 0.003) & (jnp.abs(v) > PAD_INNER - 0.005)
@@ -201,13 +208,17 @@ def _score(centre, approach, closing, object_points, object_normals, object_vali
         d = points - centre
         return d @ across, d @ closing, d @ approach
 
-    u, v, t = local(object_points)
-    between = object_valid & (jnp.abs(u) < PAD_HALF_WIDTH) & (jnp.abs(t) < PAD_HALF_LENGTH) & (jnp.abs(v) < 0.04)
-    v_min = jnp.where(between, v, jnp.inf).min()
-    v_max = jnp.where(between, v, -jnp.inf).max()
+    def pinched(u, v, t):
+        between = object_valid & (jnp.abs(u) < PAD_HALF_WIDTH) & (jnp.abs(t) < PAD_HALF_LENGTH) & (jnp.abs(v) < 0.04)
+        return between, jnp.where(between, v, jnp.inf).min(), jnp.where(between, v, -jnp.inf).max()
+
+    between, v_min, v_max = pinched(*local(object_points))
     shift = jnp.where(between.any(), 0.5 * (v_min + v_max), 0.0)
     centre = centre + shift * closing
-    v, v_min, v_max = v - shift, v_min - shift, v_max - shift
+    # Re-centring along a closing axis that is not level moves the pads' tips up or down: clear the table again.
+    centre = centre - _table_back_off(centre, approach, closing, across) * approach
+    u, v, t = local(object_points)
+    between, v_min, v_max = pinched(u, v, t)
     width = v_max - v_min
     # Antipodal: where each pad lands the surface faces that pad. The net push of a pad is along the mean normal of
     # the front faces in its landing band: its cosine with the closing axis is the contact's tilt (a surface curving
@@ -230,7 +241,6 @@ def _score(centre, approach, closing, object_points, object_normals, object_vali
     above_table = _pad_corners(centre, approach, closing, across).min() > TABLE_HEIGHT + TABLE_CLEARANCE
 
     pu, pv, pt = local(part_points)
-    pv = pv - shift
     on_part = part_valid & (jnp.abs(pu) < PAD_HALF_WIDTH) & (jnp.abs(pt) < PAD_HALF_LENGTH) & (jnp.abs(pv) < 0.04)
     near_pad = on_part & (jnp.abs(pv) > 0.5 * width - 0.006)
     n_between = between.sum()

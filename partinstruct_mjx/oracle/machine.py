@@ -48,6 +48,9 @@ VIA_HEIGHT = 0.06
 """Waypoints before a pregrasp/pretouch pose are raised this much, so the hand comes from above."""
 CLOSE_STEPS = 14
 """Steps the fingers get to close (0.25 s filter) before the grasp is judged."""
+GRIP_SETTLED = 0.0005
+"""A grasp counts once GRASPING holds and the fingers moved less than this (m) in the last step: an object that
+squeezes out of closing fingers is caught at the grasp (and retried), not during the carry."""
 MOVE_TOLERANCE = 0.012
 """The oracle's own move ends within this of p0 + 0.12 dir (the effect allows 0.05)."""
 ROTATE_TOLERANCE = 0.2
@@ -59,8 +62,9 @@ FINGER_OPENED = 0.035
 """Release: finger opening (m) at which the hand starts backing off."""
 LOST_STEPS = 6
 """Steps a carry, push or turn may go on without holding (or touching) the object before the skill fails."""
-PUSH_TILTS = (0.9, 1.15, 1.4)
-"""Pushes press with the hand tilted down by the first of these (rad) the arm reaches."""
+PUSH_TILTS = (0.35, 0.7, 1.05, 1.4)
+"""Pushes press with the hand tilted down by the first of these (rad) the arm reaches with the hand above the table:
+the flatter the hand, the closer TOUCHING's fingertip point (the pads' far end) is to what the pads press."""
 PUSH_BACK_OFF = 0.04
 TOUCH_PRESS = 0.01
 """Metres the fingertip leaves the object before re-approaching it low, and how far past the face it aims."""
@@ -76,7 +80,9 @@ PUSH_LOOKAHEAD = 0.04
 PUSH_STOP = 0.006
 """A push heads for the point this far ahead of the object on its line (m), and stops this short of the goal."""
 RETOUCH_BACK = 0.02
-"""Metres behind the touched part the fingertip waits before touching it again after a push."""
+RETOUCH_STANDOFF = 0.006
+"""Metres behind the touched part the fingertip waits before touching it again after a push, and short of it that
+the fingertip stops (TOUCHING holds within 1 cm)."""
 LIFT_START_SPEED = 0.003
 LIFT_ACCELERATION = 0.001
 """A carry's commanded speed starts at this (m per step) and grows by this per step up to CARRY_SPEED."""
@@ -109,6 +115,7 @@ class OracleState:
     cmd_pos: jnp.ndarray
     cmd_quat: jnp.ndarray
     finger: jnp.ndarray
+    grip_width: jnp.ndarray   # (B,) finger opening measured at the previous step
     target_pos: jnp.ndarray   # grasp/touch TCP pose from the planner
     target_quat: jnp.ndarray
     approach: jnp.ndarray     # (B, 3) unit axis the TCP moves along into the target
@@ -164,6 +171,7 @@ def init(chains: dict, data, geometry: PartGeometry, keys: jax.Array) -> OracleS
         failed_skill=jnp.full(batch, -1, jnp.int32), p0=jnp.asarray(data.object_pos, jnp.float32), masks=masks,
         cmd_pos=jnp.asarray(data.tcp_pos, jnp.float32), cmd_quat=jnp.asarray(data.tcp_quat, jnp.float32),
         finger=jnp.asarray(data.finger_qpos[:, 0], jnp.float32),
+        grip_width=jnp.asarray(data.finger_qpos[:, 0], jnp.float32),
         target_pos=jnp.asarray(data.tcp_pos, jnp.float32), target_quat=jnp.asarray(data.tcp_quat, jnp.float32),
         approach=jnp.zeros((batch, 3), jnp.float32), turn_axis=jnp.zeros((batch, 3), jnp.float32).at[:, 2].set(1.0),
         turn_angle=jnp.zeros(batch, jnp.float32), turn_pivot=jnp.zeros((batch, 3), jnp.float32),
@@ -191,8 +199,9 @@ def plan(oracle: OracleState, data, geometry: PartGeometry, kinematics, joint_ta
 
 
 def _plan_push(o: OracleState, data, geo: PartGeometry, kinematics, q):
-    """Where a push starts: the fingertip low on the object's face opposite the push, with the first hand tilt
-    (PUSH_TILTS) at which the arm reaches the pre-push pose, the start and the end of the push."""
+    """Where a push starts: the fingertip at the push point of the touched part (pushing.py), with the first hand
+    tilt (PUSH_TILTS) that keeps the hand above the table and at which the arm reaches the pre-push pose, the start
+    and the end of the push."""
     index = jnp.clip(o.skill, 0, progress.MAX_SKILLS - 1)
     need = o.needs_plan & (o.kind[index] == MOVE) & o.touching[index]
     direction = o.direction[index]
@@ -201,9 +210,13 @@ def _plan_push(o: OracleState, data, geo: PartGeometry, kinematics, q):
                                                    world)
     point, _ = pushing.push_point(touched, touched_valid, world[geo.whole], geo.valid[geo.whole], direction)
     poses = [_push_pose(point, direction, tilt) for tilt in PUSH_TILTS]
-    reached = [lookahead.reach_all(kinematics, q, jnp.stack([pos - PUSH_BACK_OFF * direction, pos,
-                                                             pos + UNIT_DISTANCE * direction]), quat)[0]
-               for pos, quat in poses]
+    # The palm (a capsule 2 cm behind the TCP, 2.8 cm thick) and the pads' lower edge stay above the table.
+    clear = [(pos[2] - 0.02 * jnp.sin(tilt) - candidates.HAND_RADIUS > TABLE_HEIGHT + 0.005)
+             & (point[2] - candidates.PAD_HALF_WIDTH * jnp.cos(tilt) > TABLE_HEIGHT + 0.002)
+             for (pos, _), tilt in zip(poses, PUSH_TILTS)]
+    reached = [ok & lookahead.reach_all(kinematics, q, jnp.stack([pos - PUSH_BACK_OFF * direction, pos,
+                                                                  pos + UNIT_DISTANCE * direction]), quat)[0]
+               for (pos, quat), ok in zip(poses, clear)]
     pick = jnp.argmax(jnp.stack(reached + [jnp.asarray(True)]))
     pos = jnp.stack([p for p, _ in poses] + [poses[-1][0]])[pick]
     quat = jnp.stack([r for _, r in poses] + [poses[-1][1]])[pick]
@@ -295,19 +308,23 @@ def _plan_reach(o: OracleState, data, geo: PartGeometry, kinematics, q):
         kinematics, joints, positions, quats, chain, index, data.object_pos, object_points, object_valid, part_vector)
     order = jnp.argsort(jnp.where(reachable & (clear | ~is_grasp), 0, 1) * positions.shape[0]
                         + jnp.arange(positions.shape[0]))
+    # The attempt-th reachable candidate (a retry skips the ones tried before), or the last one when fewer are left.
     rank = jnp.cumsum(reachable[order]) - 1
-    chosen = reachable[order] & (rank == o.attempt)
+    chosen = reachable[order] & (rank == jnp.minimum(o.attempt, reachable.sum() - 1))
     found = chosen.any()
     pick = order[jnp.argmax(chosen)]
     need = o.needs_plan & (kind <= TOUCH)
-    fail = need & ~found
+    # Nothing found: the candidates are a random sample (a thin part has few grasps), so draw again next step while
+    # attempts are left.
+    empty = need & ~found
+    fail = empty & (o.attempt + 1 >= MAX_ATTEMPTS)
     take = need & found
     return o.replace(
         target_pos=jnp.where(take, positions[pick], o.target_pos),
         target_quat=jnp.where(take, quats[pick], o.target_quat),
         approach=jnp.where(take, axes[pick], o.approach),
         stage=jnp.where(take, 1, o.stage), stage_steps=jnp.where(take, 0, o.stage_steps),
-        needs_plan=o.needs_plan & ~need, key=key,
+        attempt=o.attempt + (empty & ~fail), needs_plan=o.needs_plan & ~(take | fail), key=key,
         failed=o.failed | fail, failed_skill=jnp.where(fail & ~o.failed, o.skill, o.failed_skill))
 
 
@@ -423,8 +440,9 @@ def _act_one(o: OracleState, data, geo: PartGeometry, rows, env, follow_env: boo
         [at_goal | (steps > 60), at_goal | (steps > 30),
          (jnp.linalg.norm(pos_r - reach_goal) < 1e-6) & ((jnp.linalg.norm(tcp - reach_goal) < 0.004) | (steps > 25)),
          steps >= CLOSE_STEPS, steps >= 10, at_goal | (steps > 20)], False)
-    # A touch is judged as it approaches: it is done the moment TOUCHING holds.
-    reach_done = effects & jnp.where(is_touch, stage >= 2, stage >= 4)
+    # A touch is judged as it approaches: it is done the moment TOUCHING holds; a grasp once the fingers stopped.
+    settled = jnp.abs(data.finger_qpos[0] - o.grip_width) < GRIP_SETTLED
+    reach_done = effects & jnp.where(is_touch, stage >= 2, (stage >= 4) & settled)
     retry = reach_next & ((stage == 5) | (is_touch & (stage == 3)))
     reach_stage = jnp.where(retry, 6, jnp.where(reach_next & (stage == 6), 0, stage + reach_next.astype(jnp.int32)))
     replan = reach_next & (stage == 6)
@@ -447,6 +465,11 @@ def _act_one(o: OracleState, data, geo: PartGeometry, rows, env, follow_env: boo
     push_pos, push_quat = o.target_pos, o.target_quat
     push_point, _ = pushing.push_point(focus_points, focus_valid, world[geo.whole], geo.valid[geo.whole], direction)
     to_tcp = -predicates.FINGERTIP_OFFSET * quat_rotate(push_quat, up)
+    touching_now = predicates.touching(data, geo, o.masks, geo.whole)
+    touching_part = predicates.touching(data, geo, env_masks, focus_part, world)
+    # The fingers press the object (TOUCHING's fingertip point may still be more than 1 cm from it).
+    in_contact = touching_now | (data.contact_force * (geo.geom_part[jnp.maximum(data.contact_geom, 0)] >= 0)
+                                 * (data.contact_geom >= 0)).any()
     tip = tcp + predicates.FINGERTIP_OFFSET * quat_rotate(o.cmd_quat, up)
     # Pure pursuit: head for the point PUSH_LOOKAHEAD ahead of the object on the line p0 -> goal, so a sideways
     # drift is pushed back onto the line; the fingertip keeps to the line through the object's middle along it.
@@ -455,7 +478,7 @@ def _act_one(o: OracleState, data, geo: PartGeometry, rows, env, follow_env: boo
     aim = o.p0 + jnp.minimum(travelled + PUSH_LOOKAHEAD, UNIT_DISTANCE + PUSH_LOOKAHEAD) * direction
     heading = (aim - data.object_pos) * flat
     heading = heading / jnp.maximum(jnp.linalg.norm(heading), 1e-6)
-    offset = (tip - predicates.masked_mean(world[geo.whole], geo.valid[geo.whole])) * flat
+    offset = (tip - pushing.footprint_centre(world[geo.whole], geo.valid[geo.whole])) * flat
     lateral = offset - (offset @ heading) * heading
     steer = PUSH_SPEED * heading - jnp.clip(PUSH_STEER * lateral, -PUSH_STEER_LIMIT, PUSH_STEER_LIMIT)
     pushed_enough = travelled > UNIT_DISTANCE - PUSH_STOP
@@ -466,22 +489,21 @@ def _act_one(o: OracleState, data, geo: PartGeometry, rows, env, follow_env: boo
                             push_pos - PUSH_BACK_OFF * direction, push_point + TOUCH_PRESS * direction + to_tcp,
                             o.cmd_pos + jnp.where(pushed_enough, 0.0, steer),
                             retouch_point - RETOUCH_BACK * direction + tip_to_tcp,
-                            retouch_point + tip_to_tcp])
+                            retouch_point - RETOUCH_STANDOFF * direction + tip_to_tcp])
     push_stage = jnp.clip(stage, 0, 5)
-    push_goal = push_goals[push_stage]
+    # Touching again stops at the object (the pads may press it before TOUCHING's fingertip point is near).
+    push_goal = jnp.where((push_stage == 5) & in_contact, o.cmd_pos, push_goals[push_stage])
     push_turn = jnp.where((push_stage == 1) | (push_stage == 2), push_quat, o.cmd_quat)
     push_speed = jnp.where((push_stage == 2) | (push_stage >= 3), PUSH_SPEED, FREE_SPEED)
     pos_p, quat_p = _toward(o.cmd_pos, o.cmd_quat, push_goal, push_turn, push_speed, TURN_SPEED)
     pos_m = jnp.where(push, pos_p, pos_c)
     quat_m = jnp.where(push, quat_p, o.cmd_quat)
     push_arrived = (jnp.linalg.norm(pos_p - push_goal) < 1e-6) & (jnp.linalg.norm(tcp - push_goal) < ARRIVED)
-    touching_now = predicates.touching(data, geo, o.masks, geo.whole)
-    touching_part = predicates.touching(data, geo, env_masks, focus_part, world)
     push_next = jnp.select([push_stage == 0, push_stage == 1, push_stage == 2, push_stage == 3, push_stage == 4],
-                           [push_arrived | (steps > 20), push_arrived | (steps > 30), touching_now | (steps > 30),
+                           [push_arrived | (steps > 20), push_arrived | (steps > 30), in_contact | (steps > 30),
                             pushed_enough & ~touching_part, push_arrived | (steps > 20)], False)
     # Already touching where the push would start: push from there. Slipped off during the push: approach again.
-    in_place = touching_now & (jnp.linalg.norm(tip - push_point) < PUSH_START_TOLERANCE)
+    in_place = in_contact & (jnp.linalg.norm(tip - push_point) < PUSH_START_TOLERANCE)
     slipped = (push_stage == 3) & ~pushed_enough & (o.lost >= PUSH_SLIP_STEPS)
     move_stage = jnp.where(push, jnp.select([(push_stage == 0) & in_place, slipped], [3, 2], push_stage + push_next),
                            stage)
@@ -544,7 +566,7 @@ def _act_one(o: OracleState, data, geo: PartGeometry, rows, env, follow_env: boo
     over_budget = o.skill_steps >= jnp.asarray(SKILL_BUDGET)[kind]
     # Carrying, pushing or turning without the object in hand fails at once (the original aborts such motions).
     needs_hold = ((kind == MOVE) & (o.grasping[index] | (push & (stage == 3) & ~pushed_enough))) | (kind == ROTATE)
-    holds = jnp.where(push, touching_now, predicates.grasping(data, geo, o.masks, geo.whole))
+    holds = jnp.where(push, in_contact, predicates.grasping(data, geo, o.masks, geo.whole))
     lost = jnp.where(needs_hold & ~holds, o.lost + 1, 0)
     fail = running & ~done & (over_budget | out_of_attempts | (lost > LOST_STEPS))
 
@@ -562,9 +584,9 @@ def _act_one(o: OracleState, data, geo: PartGeometry, rows, env, follow_env: boo
         stage_steps=jnp.where(finished | (next_stage != stage), 0, o.stage_steps + 1),
         skill_steps=jnp.where(finished, 0, o.skill_steps + 1),
         attempt=jnp.where(finished, 0, attempt), lost=jnp.where(finished, 0, lost),
-        needs_plan=running & (starts_plan | (replan & ~out_of_attempts)),
+        needs_plan=running & (o.needs_plan | starts_plan | (replan & ~out_of_attempts)),
         failed=o.failed | fail, failed_skill=jnp.where(fail, o.skill, o.failed_skill),
         p0=jnp.where(finished, data.object_pos, o.p0),
         cmd_pos=jnp.where(keep, o.cmd_pos, pos), cmd_quat=jnp.where(keep, o.cmd_quat, quat),
-        finger=jnp.where(keep, o.finger, finger),
+        finger=jnp.where(keep, o.finger, finger), grip_width=data.finger_qpos[0].astype(jnp.float32),
         target_pos=target_pos, turn_progress=jnp.where(finished, 0.0, turn_progress))

@@ -22,10 +22,13 @@ TIP_CLEARANCE = 0.009
 """Lowest push point above the table (m): the closed pads' round tips stay off the table."""
 FACE_BAND = 0.012
 """Points this close (m) to the part's extreme towards the pusher make up its face."""
-CENTRE_BAND = 0.3
-"""A push point lies within this share of the object's width across the push (at least MIN_CENTRE_BAND) of the
-line through its middle."""
-MIN_CENTRE_BAND = 0.015
+CENTRE_BAND = 0.2
+"""A push point lies within this share of the footprint's width across the push (at least MIN_CENTRE_BAND) of the
+line through the footprint's middle (where table friction acts: pushing beside it turns the object)."""
+MIN_CENTRE_BAND = 0.01
+MIN_CENTRAL_POINTS = 3
+"""Central push points a part needs (a margin: the settled object and its spatial parts differ a little from the
+pose the task was drawn for)."""
 BASE_BAND = 0.01
 """Object points this close (m) to its lowest point make up its footprint on the table."""
 
@@ -39,18 +42,26 @@ def push_point(part_points, part_valid, object_points, object_valid, direction):
     direction = direction * flat
     bottom = jnp.where(object_valid, object_points[:, 2], jnp.inf).min()
     base = object_valid & (object_points[:, 2] < bottom + BASE_BAND)
-    centre = (object_points * object_valid[:, None]).sum(0) / jnp.maximum(object_valid.sum(), 1)
-    # Distance from the centre of mass to the leading bottom edge; the object's width across the push.
+    centre = footprint_centre(object_points, object_valid)
+    # Distance from the centre (of mass, near the footprint's) to the leading bottom edge; the footprint's width.
     lead = jnp.where(base, (object_points - centre) @ direction, -jnp.inf).max()
     across = jnp.cross(jnp.array([0.0, 0.0, 1.0]), direction)
-    side = jnp.where(object_valid, object_points @ across, jnp.nan)
+    side = jnp.where(base, object_points @ across, jnp.nan)
     width = jnp.nanmax(side) - jnp.nanmin(side)
     tip_height = TIP_MARGIN * lead / TABLE_FRICTION
     behind = jnp.where(part_valid, -(part_points @ direction), -jnp.inf)
     height = part_points[:, 2] - bottom
     lateral = jnp.abs((part_points - centre) @ across)
-    usable = (part_valid & (behind > behind.max() - FACE_BAND) & (height >= TIP_CLEARANCE)
-              & (height <= tip_height) & (lateral <= jnp.maximum(MIN_CENTRE_BAND, CENTRE_BAND * width)))
-    cost = height + 2.0 * lateral
-    best = jnp.argmin(jnp.where(usable, cost, jnp.inf))
-    return part_points[best], usable.any()
+    usable = part_valid & (behind > behind.max() - FACE_BAND) & (height >= TIP_CLEARANCE) & (height <= tip_height)
+    central = usable & (lateral <= jnp.maximum(MIN_CENTRE_BAND, CENTRE_BAND * width))
+    # The point is the lowest, most central usable one even when none is central enough (the object may have
+    # turned a little since the task was drawn); whether one is, is what the slot rules ask.
+    best = jnp.argmin(jnp.where(usable, height + 2.0 * lateral, jnp.inf))
+    return part_points[best], central.sum() >= MIN_CENTRAL_POINTS
+
+
+def footprint_centre(object_points, object_valid):
+    """Middle (3,) of the points the object rests on (within BASE_BAND of its lowest point), at their height."""
+    bottom = jnp.where(object_valid, object_points[:, 2], jnp.inf).min()
+    base = object_valid & (object_points[:, 2] < bottom + BASE_BAND)
+    return (object_points * base[:, None]).sum(0) / jnp.maximum(base.sum(), 1)
