@@ -141,8 +141,8 @@ def synthesize(episodes: list[Episode], out_dir: str | os.PathLike, batch_size: 
 
 
 def _bucket(count: int, batch_size: int) -> int:
-    """Env batch size for `count` episodes: the next power of two, at most `batch_size`. Every new batch size (and
-    object category) compiles the oracle and env step again, so sizes are few; the rest is padding."""
+    """Env batch size for `count` episodes: the next power of two, at most `batch_size`. Every new batch size compiles
+    the oracle and env step again (objects share the shapes), so sizes are few; the rest is padding."""
     return min(batch_size, 1 << (count - 1).bit_length())
 
 

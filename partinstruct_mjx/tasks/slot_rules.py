@@ -220,8 +220,18 @@ def _grasps_found(geometry: ObjectGeometry, rotation: np.ndarray, points, normal
         return (rotation @ p + lift).T.astype(np.float32), (rotation @ n).T.astype(np.float32)
 
     whole = world(geometry.object_points[:, ::2], geometry.object_normals[:, ::2])
-    found = _grasps_per_key(*whole, np.ones(whole[0].shape[0], bool), *world(points, normals), valid)
+    found = _grasps_per_key(*_padded(*whole, np.ones(whole[0].shape[0], bool)),
+                            *_padded(*world(points, normals), np.asarray(valid, bool)))
     return int(found.sum()) >= MIN_GRASP_KEYS
+
+
+def _padded(points, normals, valid):
+    """Points, normals and validity padded (invalid) to a power of two of at least 256 rows, so the jitted search
+    compiles for a few shapes, not once per part (slow on a GPU)."""
+    size = max(256, 1 << (len(points) - 1).bit_length())
+    extra = size - len(points)
+    return (np.pad(points, ((0, extra), (0, 0))), np.pad(normals, ((0, extra), (0, 0))),
+            np.pad(valid, (0, extra)))
 
 
 @jax.jit
