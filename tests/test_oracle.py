@@ -1,5 +1,7 @@
 """The oracle: grasp/touch candidates on real built-in objects, chain compilation, and a physics rollout."""
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -166,3 +168,24 @@ def test_push_point_presses_low_on_the_face_opposite_the_push_near_the_middle(ep
     assert (point - centre) @ direction < -0.015
     lateral = (point - centre) - ((point - centre) @ direction) * direction
     assert np.linalg.norm(lateral[:2]) < 0.02
+
+
+@pytest.mark.slow
+def test_a_grasp_without_candidates_is_sampled_again_then_fails():
+    # A 2-4 mm scissors blade lying flat has no grasp the hand can make: every plan comes back empty. Each empty
+    # plan draws a fresh sample on the next step (the machine keeps asking) until MAX_ATTEMPTS, then the skill fails.
+    base = next(e for e in generate_episodes(load_catalog(assets_root()), assets_root(), 0, 1, ("train",))
+                if e.task_type == 1)
+    step = dataclasses.replace(base.chain[0], part="blade")
+    episode = dataclasses.replace(base, obj_class="scissors", obj_id="scissors_006", chain=(step,),
+                                  obj_pose=(0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0))
+    with _env(episode) as env:
+        state = env.reset(jax.random.PRNGKey(0), [episode])
+        policy = OraclePolicy()
+        policy.reset(env, state, jax.random.PRNGKey(0))
+        for attempt in range(1, machine.MAX_ATTEMPTS):
+            policy.act(env, state)
+            assert int(policy.state.attempt[0]) == attempt
+            assert bool(policy.state.needs_plan[0]) and not bool(policy.state.failed[0])
+        policy.act(env, state)
+    assert bool(policy.state.failed[0]) and int(policy.state.failed_skill[0]) == 0
