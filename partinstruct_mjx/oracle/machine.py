@@ -185,7 +185,8 @@ def init(chains: dict, data, geometry: PartGeometry, keys: jax.Array) -> OracleS
 
 def plan(oracle: OracleState, data, geometry: PartGeometry, kinematics, joint_targets) -> OracleState:
     """Plan for every environment that asks (`needs_plan`): the grasp or touch pose at the start of those skills
-    (the `attempt`-th reachable candidate in rank order; none left fails the skill), the turn at the start of a
+    (the `attempt`-th reachable candidate in rank order; an empty sample is drawn again on the next step until
+    MAX_ATTEMPTS, then the skill fails), the turn at the start of a
     rotation (rotation.py). The others pass through; each kind is computed only when some environment needs it."""
     index = jnp.clip(oracle.skill, 0, progress.MAX_SKILLS - 1)[:, None]
     kind = jnp.take_along_axis(oracle.kind, index, axis=1)[:, 0]
@@ -229,8 +230,7 @@ def _plan_turn(o: OracleState, data, geo: PartGeometry, kinematics, q):
     need = o.needs_plan & (o.kind[index] == ROTATE)
     flat = o.on_table_turn[index]
     world = predicates.world_clouds(data, geo)
-    part_points, part_valid = predicates.part_cloud(data, geo, o.masks, jnp.maximum(o.part[index], 0), world)
-    vector = predicates.masked_mean(part_points, part_valid) - data.object_pos
+    vector = predicates.part_vector(data, geo, o.masks, jnp.maximum(o.part[index], 0), world)
     vector = jnp.where(flat, vector * jnp.array([1.0, 1.0, 0.0]), vector)
     found, axis, angle, pivot, raise_by, _ = rotation.plan(
         kinematics, q, o.cmd_pos, o.cmd_quat, data.object_pos, world[geo.whole][::2], geo.valid[geo.whole][::2],
@@ -301,8 +301,7 @@ def _plan_reach(o: OracleState, data, geo: PartGeometry, kinematics, q):
                                                  "num_skills")}
 
     def part_vector(row):
-        points, valid = predicates.part_cloud(data, geo, o.masks, jnp.maximum(row, 0), world)
-        return predicates.masked_mean(points, valid) - data.object_pos
+        return predicates.part_vector(data, geo, o.masks, jnp.maximum(row, 0), world)
 
     clear = jax.vmap(lookahead.outlook, in_axes=(None, 0, 0, 0, None, None, None, None, None, None))(
         kinematics, joints, positions, quats, chain, index, data.object_pos, object_points, object_valid, part_vector)
@@ -468,8 +467,7 @@ def _act_one(o: OracleState, data, geo: PartGeometry, rows, env, follow_env: boo
     touching_now = predicates.touching(data, geo, o.masks, geo.whole)
     touching_part = predicates.touching(data, geo, env_masks, focus_part, world)
     # The fingers press the object (TOUCHING's fingertip point may still be more than 1 cm from it).
-    in_contact = touching_now | (data.contact_force * (geo.geom_part[jnp.maximum(data.contact_geom, 0)] >= 0)
-                                 * (data.contact_geom >= 0)).any()
+    in_contact = touching_now | predicates.finger_on_object(data, geo)
     tip = tcp + predicates.FINGERTIP_OFFSET * quat_rotate(o.cmd_quat, up)
     # Pure pursuit: head for the point PUSH_LOOKAHEAD ahead of the object on the line p0 -> goal, so a sideways
     # drift is pushed back onto the line; the fingertip keeps to the line through the object's middle along it.

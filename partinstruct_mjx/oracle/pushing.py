@@ -14,6 +14,8 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
+from partinstruct_mjx.tasks.predicates import masked_mean
+
 TABLE_FRICTION = 0.5
 """Friction between objects and the table (the scene's table geom and the converter's object geoms)."""
 TIP_MARGIN = 0.7
@@ -40,9 +42,8 @@ def push_point(part_points, part_valid, object_points, object_valid, direction):
     """
     flat = jnp.array([1.0, 1.0, 0.0])
     direction = direction * flat
-    bottom = jnp.where(object_valid, object_points[:, 2], jnp.inf).min()
-    base = object_valid & (object_points[:, 2] < bottom + BASE_BAND)
-    centre = footprint_centre(object_points, object_valid)
+    bottom, base = _footprint(object_points, object_valid)
+    centre = masked_mean(object_points, base)
     # Distance from the centre (of mass, near the footprint's) to the leading bottom edge; the footprint's width.
     lead = jnp.where(base, (object_points - centre) @ direction, -jnp.inf).max()
     across = jnp.cross(jnp.array([0.0, 0.0, 1.0]), direction)
@@ -62,6 +63,11 @@ def push_point(part_points, part_valid, object_points, object_valid, direction):
 
 def footprint_centre(object_points, object_valid):
     """Middle (3,) of the points the object rests on (within BASE_BAND of its lowest point), at their height."""
+    return masked_mean(object_points, _footprint(object_points, object_valid)[1])
+
+
+def _footprint(object_points, object_valid):
+    """The object's lowest z and the mask (M,) of its points within BASE_BAND of it."""
     bottom = jnp.where(object_valid, object_points[:, 2], jnp.inf).min()
-    base = object_valid & (object_points[:, 2] < bottom + BASE_BAND)
-    return (object_points * base[:, None]).sum(0) / jnp.maximum(base.sum(), 1)
+    return bottom, object_valid & (object_points[:, 2] < bottom + BASE_BAND)
+

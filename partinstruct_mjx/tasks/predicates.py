@@ -83,8 +83,13 @@ def at_position(state, target: jnp.ndarray, threshold: jnp.ndarray) -> jnp.ndarr
 
 def facing(state, geo, masks, part, direction: jnp.ndarray, threshold=FACING_ANGLE, world=None) -> jnp.ndarray:
     """The vector from the object origin to the part's mean point is within `threshold` rad of `direction`."""
+    return points_along(part_vector(state, geo, masks, part, world), direction, threshold)
+
+
+def part_vector(state, geo, masks, part, world=None) -> jnp.ndarray:
+    """(3,) from the object origin to the part's mean point: the vector FACING measures."""
     points, valid = part_cloud(state, geo, masks, part, world)
-    return points_along(masked_mean(points, valid) - state.object_pos, direction, threshold)
+    return masked_mean(points, valid) - state.object_pos
 
 
 def points_along(vector: jnp.ndarray, direction: jnp.ndarray, threshold) -> jnp.ndarray:
@@ -95,10 +100,9 @@ def points_along(vector: jnp.ndarray, direction: jnp.ndarray, threshold) -> jnp.
 
 def grasping(state, geo, masks, part, world=None) -> jnp.ndarray:
     """One finger presses the object with > 20 N and touches the part (any part for the whole-object row)."""
-    geom = state.contact_geom
-    on_object = (geom >= 0) & (geo.geom_part[jnp.maximum(geom, 0)] >= 0)
+    on_object, label = _on_object(state, geo)
     force = (state.contact_force * on_object).sum(axis=-1)
-    labelled = on_object & (geo.geom_part[jnp.maximum(geom, 0)] == part)
+    labelled = on_object & (label == part)
     points, valid = part_cloud(state, geo, masks, part, world)
     gap = jnp.linalg.norm(state.contact_pos[..., None, :] - points, axis=-1)
     near = on_object & (jnp.where(valid, gap, jnp.inf).min(axis=-1) < SPATIAL_CONTACT_DISTANCE)
@@ -171,6 +175,12 @@ def _on_object(state, geo: PartGeometry) -> tuple[jnp.ndarray, jnp.ndarray]:
     geom = state.contact_geom
     label = geo.geom_part[jnp.maximum(geom, 0)]
     return (geom >= 0) & (label >= 0), label
+
+
+def finger_on_object(state, geo: PartGeometry) -> jnp.ndarray:
+    """A finger has a contact with force on the object (any part)."""
+    on_object, _ = _on_object(state, geo)
+    return (state.contact_force * on_object).any()
 
 
 def pressing(state, geo: PartGeometry) -> jnp.ndarray:
