@@ -68,6 +68,10 @@ the flatter the hand, the closer TOUCHING's fingertip point (the pads' far end) 
 PUSH_BACK_OFF = 0.04
 TOUCH_PRESS = 0.01
 """Metres the fingertip leaves the object before re-approaching it low, and how far past the face it aims."""
+DETOUR_DISTANCE = 0.06
+DETOUR_CLEARANCE = 0.03
+"""A push whose pre-push pose lies farther than this (m, horizontally) from where the touch before it ended goes
+round above the object, with the fingertip this much above the object's top."""
 PUSH_START_TOLERANCE = 0.015
 """A touch that ends this close (m) to where the push starts pushes from there."""
 PUSH_STEER = 0.15
@@ -396,6 +400,24 @@ def _push_pose(point, direction, tilt):
     return pos.astype(jnp.float32), candidates.touch_quat(z_axis).astype(jnp.float32)
 
 
+def push_approach(anchor, z_axis, pre_push, cmd_pos, object_top):
+    """Waypoints from where the touch before a push ended (`anchor`, the hand's axis `z_axis`) to the pre-push pose:
+    the back-off goal, the current goal towards the pre-push pose, and whether the hand is still crossing over.
+
+    The hand backs off along its own axis and up. After a touch elsewhere (another side of the object, more than
+    DETOUR_DISTANCE away) it goes round above the object: up until the fingertip is DETOUR_CLEARANCE above the
+    object's top, across, then down to the pre-push pose (a straight line would sweep the fingers through it).
+    """
+    up = jnp.array([0.0, 0.0, 1.0])
+    flat = jnp.array([1.0, 1.0, 0.0])
+    over = object_top + predicates.FINGERTIP_OFFSET + DETOUR_CLEARANCE
+    back_off = anchor - PUSH_BACK_OFF * z_axis + PUSH_BACK_OFF * up
+    detour = jnp.linalg.norm((anchor - pre_push) * flat) > DETOUR_DISTANCE
+    crossing = detour & (jnp.linalg.norm((cmd_pos - pre_push) * flat) > ARRIVED / 2)
+    back_off = jnp.where(detour, back_off.at[2].set(jnp.maximum(back_off[2], over)), back_off)
+    return back_off, jnp.where(crossing, pre_push.at[2].set(over), pre_push), crossing
+
+
 def _skill_effects(o: OracleState, data, geo: PartGeometry, rows) -> jnp.ndarray:
     """The current skill's effects (spec 5.2) hold now, with the oracle's p0 and spatial parts."""
     return progress.evaluate(data, geo, o.masks, rows, o.p0).all()
@@ -483,8 +505,10 @@ def _act_one(o: OracleState, data, geo: PartGeometry, rows, env, follow_env: boo
     retouch_point = focus_points[jnp.argmin(jnp.where(
         focus_valid, focus_points @ direction + 0.5 * jnp.linalg.norm(focus_points - tip, axis=-1), jnp.inf))]
     tip_to_tcp = -predicates.FINGERTIP_OFFSET * z_axis
-    push_goals = jnp.stack([o.anchor_pos - PUSH_BACK_OFF * direction + PUSH_BACK_OFF * up,
-                            push_pos - PUSH_BACK_OFF * direction, push_point + TOUCH_PRESS * direction + to_tcp,
+    object_top = jnp.where(geo.valid[geo.whole], world[geo.whole][:, 2], -jnp.inf).max()
+    back_off, to_pre_push, crossing = push_approach(o.anchor_pos, z_axis, push_pos - PUSH_BACK_OFF * direction,
+                                                    o.cmd_pos, object_top)
+    push_goals = jnp.stack([back_off, to_pre_push, push_point + TOUCH_PRESS * direction + to_tcp,
                             o.cmd_pos + jnp.where(pushed_enough, 0.0, steer),
                             retouch_point - RETOUCH_BACK * direction + tip_to_tcp,
                             retouch_point - RETOUCH_STANDOFF * direction + tip_to_tcp])
@@ -498,14 +522,16 @@ def _act_one(o: OracleState, data, geo: PartGeometry, rows, env, follow_env: boo
     quat_m = jnp.where(push, quat_p, o.cmd_quat)
     push_arrived = (jnp.linalg.norm(pos_p - push_goal) < 1e-6) & (jnp.linalg.norm(tcp - push_goal) < ARRIVED)
     push_next = jnp.select([push_stage == 0, push_stage == 1, push_stage == 2, push_stage == 3, push_stage == 4],
-                           [push_arrived | (steps > 20), push_arrived | (steps > 30), in_contact | (steps > 30),
+                           [push_arrived | (steps > 20), (push_arrived & ~crossing) | (steps > 60),
+                            in_contact | (steps > 30),
                             pushed_enough & ~touching_part, push_arrived | (steps > 20)], False)
     # Already touching where the push would start: push from there. Slipped off during the push: approach again.
     in_place = in_contact & (jnp.linalg.norm(tip - push_point) < PUSH_START_TOLERANCE)
     slipped = (push_stage == 3) & ~pushed_enough & (o.lost >= PUSH_SLIP_STEPS)
     move_stage = jnp.where(push, jnp.select([(push_stage == 0) & in_place, slipped], [3, 2], push_stage + push_next),
                            stage)
-    move_done = jnp.where(push, effects & pushed_enough & touching_part & (push_stage >= 3),
+    # Stages 4 and 5 come after the object travelled far enough (it may spring back a little as the hand lets go).
+    move_done = jnp.where(push, effects & touching_part & ((push_stage >= 4) | ((push_stage == 3) & pushed_enough)),
                           effects & (put_down | (jnp.linalg.norm(error) < MOVE_TOLERANCE)))
 
     # Rotate: turn the hand so the part's direction from the object origin reaches the goal direction.
