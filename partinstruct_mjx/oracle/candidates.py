@@ -265,6 +265,13 @@ with a level hand, and low points need the tilt to keep the hand off the table."
 TOUCH_DEPTH = 0.004
 """How far past the touch point the fingertip is aimed (the touch skill stops as soon as TOUCHING holds)."""
 FACE_BAND = 0.012
+TOUCH_POINTS = 256
+"""Part points (evenly strided) a touch chooses from."""
+TOUCH_RAY_RADIUS = 0.012
+TOUCH_RAY_START = 0.005
+TOUCH_RAY_LENGTH = 0.12
+"""A touch point is free when no object point lies within TOUCH_RAY_RADIUS (about the closed fingertips' half width)
+of the line the fingertip comes in along, from TOUCH_RAY_START to TOUCH_RAY_LENGTH (m) out from the point."""
 MIN_TOUCH_HEIGHT = 0.02
 """Lowest touch point above the table (m): the closed fingertips are about 2.5 cm wide."""
 LOW_TOUCH_HEIGHT = 0.10
@@ -278,27 +285,24 @@ def touch_candidates(object_points, object_valid, part_points, part_valid, push_
     """
     part_centre = masked_mean(part_points, part_valid)
     object_centre = masked_mean(object_points, object_valid)
-    lo = jnp.where(part_valid[:, None], part_points, jnp.inf).min(0)
-    hi = jnp.where(part_valid[:, None], part_points, -jnp.inf).max(0)
+    stride = max(1, part_points.shape[0] // TOUCH_POINTS)
+    points, valid = part_points[::stride], part_valid[::stride]
 
     def one(side, tilt):
-        reach = jnp.where(part_valid, part_points @ side, -jnp.inf)
-        best = reach.max()
         is_top = side[2] > 0.5
-        # Object points that could block this side at the part's level (height band) or over its footprint (top).
-        level = jnp.where(is_top, (object_points[:, 0] > lo[0] - 0.01) & (object_points[:, 0] < hi[0] + 0.01)
-                          & (object_points[:, 1] > lo[1] - 0.01) & (object_points[:, 1] < hi[1] + 0.01),
-                          (object_points[:, 2] > lo[2] - 0.01) & (object_points[:, 2] < hi[2] + 0.01))
-        blocking = jnp.where(object_valid & level, object_points @ side, -jnp.inf).max()
-        free = best >= blocking - 0.01
-        face = part_valid & (reach > best - FACE_BAND)
-        # Before a push the fingertip goes where the push will press (pushing.py: low, near the object's middle);
-        # other touches take the face point nearest the part's centre.
-        pushing = (side @ push_side) > 0.5
-        cost = jnp.where(face, jnp.linalg.norm(part_points - part_centre, axis=-1), jnp.inf)
-        push_at, push_ok = pushing_module.push_point(part_points, part_valid, object_points, object_valid, -side)
-        point = jnp.where(pushing, push_at, part_points[jnp.argmin(cost)])
         z_axis = jnp.where(is_top, -side, -jnp.cos(tilt) * side - jnp.sin(tilt) * jnp.array([0.0, 0.0, 1.0]))
+        # Points the fingertip can come to along its axis without the object in the way; of those, the ones within
+        # FACE_BAND of the farthest out towards the side (the part's face on that side, or what is open of it).
+        free = valid & clear_rays(points, -z_axis, object_points, object_valid)
+        reach = jnp.where(free, points @ side, -jnp.inf)
+        free = free & (reach > reach.max() - FACE_BAND)
+        # Before a push the fingertip goes where the push will press (pushing.py: low, near the object's middle, on
+        # the face towards the pusher); other touches take the free point nearest the part's centre.
+        pushing = (side @ push_side) > 0.5
+        cost = jnp.where(free, jnp.linalg.norm(points - part_centre, axis=-1), jnp.inf)
+        push_at, push_ok = pushing_module.push_point(part_points, part_valid, object_points, object_valid, -side)
+        point = jnp.where(pushing, push_at, points[jnp.argmin(cost)])
+        reachable = jnp.where(pushing, push_ok, free.any())
         # Side touches keep the closed fingers off the table (a push point is high enough for a tilted hand); a top
         # touch reaches any part from above.
         above_table = (is_top | (pushing & (tilt > 0))
@@ -308,11 +312,23 @@ def touch_candidates(object_points, object_valid, part_points, part_valid, push_
         alignment = (part_centre - object_centre) @ side
         # Before a push the side opposite the push direction comes first (the push can start from there).
         score = alignment - 0.01 * tilt + jnp.where(pushing, 1.0, 0.0)
-        return point, z_axis, jnp.where(free & above_table & (push_ok | ~pushing), score, -jnp.inf)
+        return point, z_axis, jnp.where(reachable & above_table, score, -jnp.inf)
 
     sides = jnp.repeat(jnp.asarray(TOUCH_SIDES), len(TOUCH_TILTS), axis=0)
     tilts = jnp.tile(jnp.asarray(TOUCH_TILTS), TOUCH_SIDES.shape[0])
     return jax.vmap(one)(sides, tilts)
+
+
+def clear_rays(points, ray, object_points, object_valid):
+    """(M,) whether the ray from each point along the unit `ray` is clear of the object: no object point lies within
+    TOUCH_RAY_RADIUS of it between TOUCH_RAY_START (the point's own surface) and TOUCH_RAY_LENGTH."""
+    along = object_points @ ray - (points @ ray)[:, None]
+    squared = (jnp.sum(object_points ** 2, -1)[None] + jnp.sum(points ** 2, -1)[:, None]
+               - 2.0 * points @ object_points.T)
+    lateral = squared - along ** 2
+    blocked = (object_valid[None] & (along > TOUCH_RAY_START) & (along < TOUCH_RAY_LENGTH)
+               & (lateral < TOUCH_RAY_RADIUS ** 2))
+    return ~blocked.any(axis=1)
 
 
 def touch_quat(z_axis: jnp.ndarray) -> jnp.ndarray:

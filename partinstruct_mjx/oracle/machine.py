@@ -418,6 +418,13 @@ def push_approach(anchor, z_axis, pre_push, cmd_pos, object_top):
     return back_off, jnp.where(crossing, pre_push.at[2].set(over), pre_push), crossing
 
 
+def push_counted(effects, touching_part, stage, pushed_enough):
+    """A push is done when its effects hold and the touched part is under the fingertip, once the object went far
+    enough: in stage 3 as it goes, in stages 4-5 (which come after) even if it sprang back a little as the hand let
+    go (the effects allow 5 cm; waiting for the distance again ran the push out of its budget)."""
+    return effects & touching_part & ((stage >= 4) | ((stage == 3) & pushed_enough))
+
+
 def _skill_effects(o: OracleState, data, geo: PartGeometry, rows) -> jnp.ndarray:
     """The current skill's effects (spec 5.2) hold now, with the oracle's p0 and spatial parts."""
     return progress.evaluate(data, geo, o.masks, rows, o.p0).all()
@@ -530,8 +537,7 @@ def _act_one(o: OracleState, data, geo: PartGeometry, rows, env, follow_env: boo
     slipped = (push_stage == 3) & ~pushed_enough & (o.lost >= PUSH_SLIP_STEPS)
     move_stage = jnp.where(push, jnp.select([(push_stage == 0) & in_place, slipped], [3, 2], push_stage + push_next),
                            stage)
-    # Stages 4 and 5 come after the object travelled far enough (it may spring back a little as the hand lets go).
-    move_done = jnp.where(push, effects & touching_part & ((push_stage >= 4) | ((push_stage == 3) & pushed_enough)),
+    move_done = jnp.where(push, push_counted(effects, touching_part, push_stage, pushed_enough),
                           effects & (put_down | (jnp.linalg.norm(error) < MOVE_TOLERANCE)))
 
     # Rotate: turn the hand so the part's direction from the object origin reaches the goal direction.
