@@ -88,7 +88,7 @@ RETOUCH_STANDOFF = 0.006
 """Metres behind the touched part the fingertip waits before touching it again after a push, and short of it that
 the fingertip stops (TOUCHING holds within 1 cm)."""
 LIFT_START_SPEED = 0.003
-LIFT_ACCELERATION = 0.001
+LIFT_ACCELERATION = 0.0005
 """A carry's commanded speed starts at this (m per step) and grows by this per step up to CARRY_SPEED."""
 
 
