@@ -249,3 +249,13 @@ def test_a_push_counts_once_far_enough_even_if_the_object_springs_back():
     assert bool(machine.push_counted(True, True, 3, True)) and not bool(machine.push_counted(True, True, 3, False))
     assert not bool(machine.push_counted(True, False, 5, True)) and not bool(machine.push_counted(False, True, 5, True))
     assert not bool(machine.push_counted(True, True, 2, True))
+
+
+def test_a_grasp_counts_once_the_fingers_stop_a_touch_as_soon_as_it_holds():
+    still, closing = 0.0201, 0.0201 + 2 * machine.GRIP_SETTLED
+    assert bool(machine.reach_counted(True, False, 4, 0.02, still))
+    assert not bool(machine.reach_counted(True, False, 4, 0.02, closing))
+    assert not bool(machine.reach_counted(True, False, 3, 0.02, still))
+    assert not bool(machine.reach_counted(False, False, 5, 0.02, still))
+    # A touch does not wait for the fingers (they are closed before it approaches).
+    assert bool(machine.reach_counted(True, True, 2, 0.0, 0.01))

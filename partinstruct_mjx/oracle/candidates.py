@@ -237,7 +237,8 @@ def _score(centre, approach, closing, object_points, object_normals, object_vali
     pads = (object_valid & (jnp.abs(u) < PAD_HALF_WIDTH + 0.003) & (t < PAD_HALF_LENGTH + TIP_CLEARANCE)
             & (t > -PREGRASP_DISTANCE - PAD_HALF_LENGTH - 0.01)
             & (jnp.abs(v) > PAD_INNER) & (jnp.abs(v) < PAD_OUTER))
-    hand = (object_valid & (t < -HAND_BACK) & (t > -HAND_BACK - PREGRASP_DISTANCE - 0.06) & (jnp.abs(u) < HAND_HALF_WIDTH) & (jnp.abs(v) < HAND_HALF_LENGTH))
+    hand = (object_valid & (t < -HAND_BACK) & (t > -HAND_BACK - PREGRASP_DISTANCE - 0.06)
+            & (jnp.abs(u) < HAND_HALF_WIDTH) & (jnp.abs(v) < HAND_HALF_LENGTH))
     above_table = _pad_corners(centre, approach, closing, across).min() > TABLE_HEIGHT + TABLE_CLEARANCE
 
     pu, pv, pt = local(part_points)
@@ -264,7 +265,6 @@ TOUCH_TILTS = (0.0, 0.8, 1.2)
 with a level hand, and low points need the tilt to keep the hand off the table."""
 TOUCH_DEPTH = 0.004
 """How far past the touch point the fingertip is aimed (the touch skill stops as soon as TOUCHING holds)."""
-FACE_BAND = 0.012
 TOUCH_POINTS = 256
 """Part points (evenly strided) a touch chooses from."""
 TOUCH_RAY_RADIUS = 0.012
@@ -292,10 +292,8 @@ def touch_candidates(object_points, object_valid, part_points, part_valid, push_
         is_top = side[2] > 0.5
         z_axis = jnp.where(is_top, -side, -jnp.cos(tilt) * side - jnp.sin(tilt) * jnp.array([0.0, 0.0, 1.0]))
         # Points the fingertip can come to along its axis without the object in the way; of those, the ones within
-        # FACE_BAND of the farthest out towards the side (the part's face on that side, or what is open of it).
-        free = valid & clear_rays(points, -z_axis, object_points, object_valid)
-        reach = jnp.where(free, points @ side, -jnp.inf)
-        free = free & (reach > reach.max() - FACE_BAND)
+        # pushing.FACE_BAND of the farthest out towards the side (the part's face on that side, or what is open of it).
+        free = pushing_module.face(points, valid & clear_rays(points, -z_axis, object_points, object_valid), side)
         # Before a push the fingertip goes where the push will press (pushing.py: low, near the object's middle, on
         # the face towards the pusher); other touches take the free point nearest the part's centre.
         pushing = (side @ push_side) > 0.5

@@ -211,8 +211,8 @@ def _plan_push(o: OracleState, data, geo: PartGeometry, kinematics, q):
     need = o.needs_plan & (o.kind[index] == MOVE) & o.touching[index]
     direction = o.direction[index]
     world = predicates.world_clouds(data, geo)
-    touched, touched_valid = predicates.part_cloud(data, geo, o.masks, jnp.maximum(o.part[jnp.maximum(index - 1, 0)], 0),
-                                                   world)
+    touched_part = jnp.maximum(o.part[jnp.maximum(index - 1, 0)], 0)
+    touched, touched_valid = predicates.part_cloud(data, geo, o.masks, touched_part, world)
     point, _ = pushing.push_point(touched, touched_valid, world[geo.whole], geo.valid[geo.whole], direction)
     poses = [_push_pose(point, direction, tilt) for tilt in PUSH_TILTS]
     # The palm (a capsule 2 cm behind the TCP, 2.8 cm thick) and the pads' lower edge stay above the table.
@@ -418,6 +418,14 @@ def push_approach(anchor, z_axis, pre_push, cmd_pos, object_top):
     return back_off, jnp.where(crossing, pre_push.at[2].set(over), pre_push), crossing
 
 
+def reach_counted(effects, is_touch, stage, grip_width, previous_width):
+    """A touch is judged as it approaches: done the moment its effects hold (from the pre-pose on). A grasp is done
+    once its effects hold after the fingers closed (stage 4 on) and stopped moving (less than GRIP_SETTLED since the
+    previous step), so an object squeezing out of closing fingers is caught at the grasp, not during the carry."""
+    settled = jnp.abs(grip_width - previous_width) < GRIP_SETTLED
+    return effects & jnp.where(is_touch, stage >= 2, (stage >= 4) & settled)
+
+
 def push_counted(effects, touching_part, stage, pushed_enough):
     """A push is done when its effects hold and the touched part is under the fingertip, once the object went far
     enough: in stage 3 as it goes, in stages 4-5 (which come after) even if it sprang back a little as the hand let
@@ -468,9 +476,7 @@ def _act_one(o: OracleState, data, geo: PartGeometry, rows, env, follow_env: boo
         [at_goal | (steps > 60), at_goal | (steps > 30),
          (jnp.linalg.norm(pos_r - reach_goal) < 1e-6) & ((jnp.linalg.norm(tcp - reach_goal) < 0.004) | (steps > 25)),
          steps >= CLOSE_STEPS, steps >= 10, at_goal | (steps > 20)], False)
-    # A touch is judged as it approaches: it is done the moment TOUCHING holds; a grasp once the fingers stopped.
-    settled = jnp.abs(data.finger_qpos[0] - o.grip_width) < GRIP_SETTLED
-    reach_done = effects & jnp.where(is_touch, stage >= 2, (stage >= 4) & settled)
+    reach_done = reach_counted(effects, is_touch, stage, data.finger_qpos[0], o.grip_width)
     retry = reach_next & ((stage == 5) | (is_touch & (stage == 3)))
     reach_stage = jnp.where(retry, 6, jnp.where(reach_next & (stage == 6), 0, stage + reach_next.astype(jnp.int32)))
     replan = reach_next & (stage == 6)

@@ -50,15 +50,20 @@ def push_point(part_points, part_valid, object_points, object_valid, direction):
     side = jnp.where(base, object_points @ across, jnp.nan)
     width = jnp.nanmax(side) - jnp.nanmin(side)
     tip_height = TIP_MARGIN * lead / TABLE_FRICTION
-    behind = jnp.where(part_valid, -(part_points @ direction), -jnp.inf)
     height = part_points[:, 2] - bottom
     lateral = jnp.abs((part_points - centre) @ across)
-    usable = part_valid & (behind > behind.max() - FACE_BAND) & (height >= TIP_CLEARANCE) & (height <= tip_height)
+    usable = face(part_points, part_valid, -direction) & (height >= TIP_CLEARANCE) & (height <= tip_height)
     central = usable & (lateral <= jnp.maximum(MIN_CENTRE_BAND, CENTRE_BAND * width))
     # The point is the lowest, most central usable one even when none is central enough (the object may have
     # turned a little since the task was drawn); whether one is, is what the slot rules ask.
     best = jnp.argmin(jnp.where(usable, height + 2.0 * lateral, jnp.inf))
     return part_points[best], central.sum() >= MIN_CENTRAL_POINTS
+
+
+def face(points, valid, toward):
+    """(M,) the valid points within FACE_BAND of the farthest valid one along `toward`: the face on that side."""
+    reach = jnp.where(valid, points @ toward, -jnp.inf)
+    return valid & (reach > reach.max() - FACE_BAND)
 
 
 def footprint_centre(object_points, object_valid):
