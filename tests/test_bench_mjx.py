@@ -41,13 +41,17 @@ def _colliding_kinds(scene, model) -> set[tuple[str, str]]:
             if model.geom_bodyid[i] != model.geom_bodyid[j] and (ct[i] & ca[j] or ct[j] & ca[i])}
 
 
-def test_variants_change_only_what_collides(mug_scene):
+def test_variants_change_only_what_collides_or_the_solver_caps(mug_scene):
     built = _colliding_kinds(mug_scene, mug_scene.model)
     assert built == {("arm", "table"), ("hand", "table"), ("hand", "object"), ("pad", "table"), ("object", "pad"),
                      ("object", "table")}
     expected = {"pads-object and object-table only": {("object", "pad"), ("object", "table")},
                 "as built, half of the object's hulls collide": built,
-                "object-table only": {("object", "table")}}
+                "object-table only": {("object", "table")},
+                "as built, line search 4 iterations": built,
+                "as built, line search 4, 1 Newton iteration": built}
+    solver = {"as built, line search 4 iterations": (mug_scene.model.opt.iterations, 4),
+              "as built, line search 4, 1 Newton iteration": (1, 4)}
     assert [v.name for v in mjx_env.VARIANTS] == list(expected)
     hulls = mug_scene.object_geoms
     for variant in mjx_env.VARIANTS:
@@ -57,6 +61,8 @@ def test_variants_change_only_what_collides(mug_scene):
         colliding = np.count_nonzero(model.geom_contype[hulls])
         assert colliding == (len(hulls) + 1) // 2 if "half" in variant.name else colliding == len(hulls)
         assert np.array_equal(model.geom_size, mug_scene.model.geom_size)
+        caps = (model.opt.iterations, model.opt.ls_iterations)
+        assert caps == solver.get(variant.name, (mug_scene.model.opt.iterations, mug_scene.model.opt.ls_iterations))
     assert np.array_equal(mug_scene.model.geom_contype, mjx_env.object_scene(MUG).model.geom_contype)  # copies only
 
 
@@ -76,7 +82,7 @@ def test_bench_episodes_and_circling_actions(mug_scene):
 
 
 def _results(per_s_4096=120_000.0, compile_s=20.0) -> mjx_env.MjxBenchResults:
-    results = mjx_env.MjxBenchResults("NVIDIA H100 80GB HBM3", 20, 5, 10, 20)
+    results = mjx_env.MjxBenchResults("NVIDIA H100 80GB HBM3", 20, 5, 10, 20, 20, 10)
     for batch, per_s in ((1024, 50_000.0), (4096, per_s_4096)):
         results.rows.append(mjx_env.Row("103619", mjx_env.AS_BUILT, "jax", batch, 16, 248,
                                         Throughput(compile_s, per_s, (0.9 * per_s, 1.1 * per_s)), 15.0))
@@ -89,7 +95,7 @@ def _results(per_s_4096=120_000.0, compile_s=20.0) -> mjx_env.MjxBenchResults:
 def test_markdown_rows_and_target():
     text = mjx_env.markdown(_results())
     assert "| 103619 | 16 | 248 | 4,096 | 120,000 | 108,000 - 132,000 | 20.00 | 15.0 |" in text
-    assert "Collision budget, `103619` at batch 4,096" in text
+    assert "Collision and solver budget, `103619` at batch 4,096" in text
     assert "| pads-object and object-table only | jax | 16 | 96 | 200,000 |" in text
     assert "| warp | 16 | - | not installed (x) | - | - | - |" in text
     assert "120,000 env steps/s, compile 20.0 s (step) + 15.0 s (reset): met" in text

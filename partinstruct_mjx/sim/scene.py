@@ -46,6 +46,7 @@ class SceneConfig:
       timestep: physics step in seconds.
       substeps: physics steps per control step (0.005 s x 10 = the original's 20 Hz control rate).
       solver_iterations: Newton solver iterations per physics step.
+      linesearch_iterations: line-search iterations per Newton iteration.
       noslip_iterations: iterations of MuJoCo's no-slip pass after the solver (C backend only; MJX ignores it).
         Soft contacts let a held object creep through the pads under a steady load (a bottle held across its middle
         pivoted 38 degrees in 4 s); the pass makes friction hard, and with the pads' torsional friction grasps hold.
@@ -56,6 +57,7 @@ class SceneConfig:
     timestep: float = 0.005
     substeps: int = 10
     solver_iterations: int = 20
+    linesearch_iterations: int = 10
     noslip_iterations: int = 10
     settle_steps: int = 60
 
@@ -126,7 +128,7 @@ def _set_options(spec: mujoco.MjSpec, config: SceneConfig) -> None:
     opt.cone = mujoco.mjtCone.mjCONE_PYRAMIDAL
     opt.solver = mujoco.mjtSolver.mjSOL_NEWTON
     opt.iterations = config.solver_iterations
-    opt.ls_iterations = 10
+    opt.ls_iterations = config.linesearch_iterations
     opt.noslip_iterations = config.noslip_iterations
     spec.visual.global_.offwidth = 640
     spec.visual.global_.offheight = 480
