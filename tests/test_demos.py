@@ -9,7 +9,8 @@ import pytest
 from partinstruct_mjx.assets.catalog import load_catalog
 from partinstruct_mjx.cli import main
 from partinstruct_mjx.data.demos import read_demos
-from partinstruct_mjx.data.synthesis import select_episodes
+from partinstruct_mjx.data import synthesis
+from partinstruct_mjx.data.synthesis import remembered_selection, select_episodes
 from partinstruct_mjx.paths import assets_root
 from partinstruct_mjx.tasks.episodes import generate_episodes, write_metadata
 
@@ -132,6 +133,21 @@ def test_episode_choice_spreads_over_types_and_categories():
     # an ep_id names the same episode whatever the filters and the count
     seeds = {e.ep_id: e.seed for e in select_episodes("train", 400)}
     assert all(seeds[e.ep_id] == e.seed for e in ten + mugs)
+
+
+def test_generated_selection_is_remembered_in_the_run_directory(tmp_path, monkeypatch):
+    first = remembered_selection(tmp_path, "train", 5, seed=1, types=[2, 5], categories=["mug"])
+    assert first == select_episodes("train", 5, seed=1, types=[2, 5], categories=["mug"])
+    (stored,) = (tmp_path / "selections").iterdir()
+    other = remembered_selection(tmp_path, "train", 3, seed=1, types=[2, 5], categories=["mug"])  # another file
+    assert other == first[:3] and len(list((tmp_path / "selections").iterdir())) == 2
+
+    def no_generation(*args, **kwargs):
+        raise AssertionError("episodes were generated again")
+
+    monkeypatch.setattr(synthesis, "generate_episodes", no_generation)
+    assert remembered_selection(tmp_path, "train", 5, seed=1, types=[5, 2], categories=["mug"]) == first  # read back
+    assert stored.exists()
 
 
 @pytest.mark.parametrize("args, message", [(["--split", "test9"], "unknown split"),

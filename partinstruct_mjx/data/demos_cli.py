@@ -25,6 +25,8 @@ output (DIR):
                             boundaries, reset state
   summary.json              counts, success rate and failing skills per task type, demos per category, provenance
   shards/, progress.json    per-batch files and the ledger that makes the run resumable
+  selections/<digest>.json  the generated episodes of each --split/--episodes/--seed/--types/--categories asked for
+                            (without --metadata), read back on resume instead of generating them again
 
 resume: every batch is committed atomically. Re-running the same command skips episodes already committed
 (successes and failures), so an interrupted run (Ctrl-C finalizes what was committed) continues where it stopped,
@@ -105,11 +107,15 @@ def run_demos(args: argparse.Namespace) -> int:
         raise DataError("--out DIR is required (the run directory to write or resume)")
     if args.batch_size < 1:
         raise DataError(f"--batch-size must be >= 1, got {args.batch_size}")
-    from partinstruct_mjx.data.synthesis import select_episodes, synthesize
+    from partinstruct_mjx.data.synthesis import remembered_selection, select_episodes, synthesize
 
-    split = args.split if args.split is not None or args.metadata is not None else "train"
-    count = args.episodes if args.episodes is not None or args.metadata is not None else 100
-    episodes = select_episodes(split, count, args.seed, args.types, args.categories, args.metadata, args.assets)
+    if args.metadata is not None:
+        episodes = select_episodes(args.split, args.episodes, args.seed, args.types, args.categories, args.metadata,
+                                   args.assets)
+    else:
+        episodes = remembered_selection(args.out, args.split or "train",
+                                        100 if args.episodes is None else args.episodes, args.seed, args.types,
+                                        args.categories, args.assets)
     try:
         summary = synthesize(episodes, args.out, batch_size=args.batch_size, seed=args.seed, sampler=args.sampler,
                              backend=args.backend, progress=not args.quiet, assets=args.assets,

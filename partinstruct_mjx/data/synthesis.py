@@ -13,6 +13,8 @@ give the same demos however often the run was interrupted (the C backend steps e
 
 from __future__ import annotations
 
+import hashlib
+import json
 import math
 import os
 import time
@@ -29,7 +31,7 @@ from partinstruct_mjx.assets.partnet import category_slug
 from partinstruct_mjx.errors import DataError, TaskError
 from partinstruct_mjx.paths import assets_root
 from partinstruct_mjx.tasks.episodes import (SPLIT_ID_STRIDE, SPLIT_TYPES, SPLITS, Episode, generate_episodes,
-                                             read_metadata, validate_episodes)
+                                             read_metadata, validate_episodes, write_metadata)
 
 ALL_TYPES = "all-types"
 """Pseudo-split: train for task types 1-10 plus test4 for 11-16 (every type once, for a per-type table)."""
@@ -37,6 +39,8 @@ SAMPLERS = ("stride", "fps")
 RENDER_CHUNK = 64
 """Clouds rendered per call of the jitted renderer (the last chunk is padded, so it compiles once)."""
 ENV_NAME = "PartInstructMJX"
+SELECTIONS_DIR = "selections"
+"""Run-directory folder of generated episode selections (`remembered_selection`)."""
 
 
 def env_args(backend: str = "mujoco", sampler: str = "stride", seed: int = 0) -> dict:
@@ -307,8 +311,9 @@ def select_episodes(split: str | None = "train", count: int | None = None, seed:
     Without `metadata`, episodes are generated (seeded, like `partinstruct episodes`) with just enough per
     (split, category, type) for `count`; with it, the file's episodes are used (`split` None keeps all). `types`
     and `categories` filter; `count` keeps the first episodes of the interleaved order (every selected type is
-    represented once count >= #types). Episodes are always generated for the whole catalog and then filtered, and
-    numbered draw-first (see `_renumbered`), so an episode keeps its ep_id whatever the filters and the count.
+    represented once count >= #types). Only the wanted (category, type) cells are drawn, with the ids and draws they
+    have when the whole catalog is, and numbered draw-first (see `_renumbered`), so an episode keeps its ep_id
+    whatever the filters and the count.
     """
     root = Path(assets) if assets is not None else assets_root()
     catalog = load_catalog(root)
@@ -344,30 +349,55 @@ def select_episodes(split: str | None = "train", count: int | None = None, seed:
             raise TaskError(f"{metadata}: no episodes of split {split}" + (f", types {types}" if types else "")
                             + (f", categories {categories}" if categories else ""))
     else:
-        cells = 0
+        chosen, all_cells = 0, {}
         for name, its_types in wanted.items():
             members = {e["category"] for e in catalog if name in e["splits"]}
+            all_cells[name] = len(members) * len(SPLIT_TYPES[name])
             members &= chosen_categories if chosen_categories is not None else members
-            cells += len(members) * len([t for t in its_types if not types or t in types])
-        if cells == 0:
+            chosen += len(members) * len([t for t in its_types if not types or t in types])
+        if chosen == 0:
             raise TaskError(f"split {split} has no objects of categories {categories}")
-        per_type = math.ceil(count / cells) if count is not None else 1
-        episodes = [e for e in _renumbered(generate_episodes(catalog, root, seed, per_type, tuple(wanted)), per_type)
-                    if keep(e)]
+        per_type = math.ceil(count / chosen) if count is not None else 1
+
+        def wanted_cell(category: str, type_id: int) -> bool:
+            return ((not types or type_id in types)
+                    and (chosen_categories is None or category_slug(category) in chosen_categories))
+
+        generated = generate_episodes(catalog, root, seed, per_type, tuple(wanted), cells=wanted_cell)
+        episodes = [e for e in _renumbered(generated, per_type, all_cells) if keep(e)]
     ordered = interleave(episodes)
     return ordered if count is None else ordered[:count]
 
 
-def _renumbered(episodes: list[Episode], per_type: int) -> list[Episode]:
+def remembered_selection(out_dir: str | os.PathLike, split: str, count: int, seed: int = 0,
+                         types: list[int] | None = None, categories: list[str] | None = None,
+                         assets: str | os.PathLike | None = None) -> list[Episode]:
+    """`select_episodes` without a metadata file, generated once per run directory: the episodes are kept in
+    `out_dir/selections/<digest of the arguments>.json` (metadata schema) and read back when the same selection is
+    asked for again, so a resumed run neither waits for the generator (minutes for thousands of episodes: the grasp
+    checks) nor sees other episodes if the generator's code changed in between."""
+    selection = {"split": split, "count": count, "seed": seed, "types": sorted(types) if types else None,
+                 "categories": sorted(category_slug(c) for c in categories) if categories else None,
+                 "assets": str(Path(assets).resolve()) if assets is not None else None}
+    digest = hashlib.sha256(json.dumps(selection, sort_keys=True).encode()).hexdigest()[:16]
+    path = Path(out_dir) / SELECTIONS_DIR / f"{digest}.json"
+    if path.exists():
+        return interleave(read_metadata(path))
+    episodes = select_episodes(split, count, seed, types, categories, None, assets)
+    write_metadata(episodes, path)
+    return episodes
+
+
+def _renumbered(episodes: list[Episode], per_type: int, cells: dict[str, int]) -> list[Episode]:
     """Episodes of `generate_episodes` with ep_ids numbered draw-first: split base + draw x cells + cell, where a cell
-    is a (category, type) of the split. generate_episodes numbers cell-first, so its ids change with per_type; these
-    do not, so a run asked for more episodes later keeps the ids (and the resume) of the smaller one."""
+    is a (category, type) of the split and `cells` counts them per split. generate_episodes numbers cell-first, so
+    its ids change with per_type; these do not, so a run asked for more episodes later keeps the ids (and the
+    resume) of the smaller one."""
     out = []
-    for split in sorted({e.split for e in episodes}, key=SPLITS.index):
-        mine = sorted((e for e in episodes if e.split == split), key=lambda e: e.ep_id)
-        cells = len(mine) // per_type
-        base = SPLITS.index(split) * SPLIT_ID_STRIDE
-        out += [replace(e, ep_id=base + (index % per_type) * cells + index // per_type) for index, e in enumerate(mine)]
+    for e in episodes:
+        base = SPLITS.index(e.split) * SPLIT_ID_STRIDE
+        cell, draw = divmod(e.ep_id - base, per_type)
+        out.append(replace(e, ep_id=base + draw * cells[e.split] + cell))
     return sorted(out, key=lambda e: e.ep_id)
 
 

@@ -15,6 +15,7 @@ import math
 import os
 import zlib
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -221,8 +222,9 @@ def validate_episodes(episodes, catalog: list[dict]) -> None:
 # --- generation ---------------------------------------------------------------------------------------------------
 
 def generate_episodes(catalog: list[dict], assets_root: str | os.PathLike, seed: int, per_type: int,
-                      splits=SPLITS) -> list[Episode]:
-    """`per_type` episodes per (split, category, task type), sorted by ep_id.
+                      splits=SPLITS, cells: Callable[[str, int], bool] | None = None) -> list[Episode]:
+    """`per_type` episodes per (split, category, task type), sorted by ep_id; with `cells`, only those of the
+    (category, type) cells it admits, with the ep_ids and draws they have when every cell is drawn.
 
     Deterministic: episode i of (split, category, type) is drawn from a generator seeded with (seed, split,
     category, type, i), so adding a split or a category leaves the other draws unchanged; ep_ids count within
@@ -249,6 +251,9 @@ def generate_episodes(catalog: list[dict], assets_root: str | os.PathLike, seed:
             for type_id in SPLIT_TYPES[split]:
                 held_out = slot_rules.held_out_combinations(category, type_id, vocabulary.get(category, ()))
                 for i in range(per_type):
+                    if cells is not None and not cells(category, type_id):
+                        index += 1
+                        continue
                     episode_seed = int(np.random.SeedSequence(
                         [seed, zlib.crc32(split.encode()), zlib.crc32(category.encode()), type_id, i]
                     ).generate_state(1)[0])
