@@ -1,7 +1,8 @@
 """Batched damped-least-squares IK for the Panda TCP in JAX, with joint limits (spec 1.6: TCP pose -> arm joints).
 
 The kinematic chain is read once from the compiled MjModel (`ArmKinematics.from_scene`), so the solver follows
-the MJCF. A solve runs a fixed number of iterations (`IKConfig.iterations`, no tolerance test): each builds the
+the MJCF. A solve runs until the weighted pose error is below `IKConfig.tolerance` or `IKConfig.iterations` have run
+(a batch iterates until all of its solves have stopped; iteration counts, never wall-clock time): each builds the
 analytic geometric Jacobian from the world joint axes (9x faster than jax.jacfwd of the forward kinematics, measured
 on a CPU), takes a Levenberg-Marquardt-damped least-squares step towards the target pose, limits it to `max_step` and
 clamps it to the joint range. Joints that sit on a limit and are pushed outwards are dropped from the step, so the
@@ -114,7 +115,9 @@ class IKConfig:
     in 3 iterations, targets across the workspace reached from the home pose in 10 (99.5 %) to 15 (100 %).
 
     Attributes:
-      iterations: damped least-squares iterations per solve.
+      iterations: most damped least-squares iterations per solve.
+      tolerance: a solve stops once the weighted pose error (metres, plus orientation_weight x radians) it just
+        stepped from is below this (0: always run `iterations`).
       damping: lambda of (J J^T + lambda^2 I): keeps steps bounded next to singular configurations.
       error_damping: adds error_damping * |weighted error|^2 to lambda^2 (Levenberg-Marquardt style), so far
         targets take short, safe steps and near ones converge quadratically.
@@ -123,6 +126,7 @@ class IKConfig:
     """
 
     iterations: int = 20
+    tolerance: float = 1e-5
     damping: float = 3e-3
     error_damping: float = 0.1
     max_step: float = 0.8
@@ -134,8 +138,9 @@ class IKConfig:
         for name in ("damping", "max_step", "orientation_weight"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"IKConfig.{name} must be > 0, got {getattr(self, name)}")
-        if not self.error_damping >= 0:
-            raise ValueError(f"IKConfig.error_damping must be >= 0, got {self.error_damping}")
+        for name in ("error_damping", "tolerance"):
+            if not getattr(self, name) >= 0:
+                raise ValueError(f"IKConfig.{name} must be >= 0, got {getattr(self, name)}")
 
 
 def _frames(kin: ArmKinematics, q: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray, jnp.ndarray, jnp.ndarray]:
@@ -191,8 +196,9 @@ def _jacobian(anchors: jnp.ndarray, axes: jnp.ndarray, tcp_pos: jnp.ndarray,
 
 
 def _ik_step(kin: ArmKinematics, config: IKConfig, target_pos: jnp.ndarray, target_quat: jnp.ndarray,
-             q: jnp.ndarray) -> jnp.ndarray:
-    """One damped least-squares step, limited to `max_step` and clamped to the joint limits.
+             q: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray]:
+    """One damped least-squares step, limited to `max_step` and clamped to the joint limits, and the norm of the
+    weighted pose error at `q` it stepped from.
 
     A second pass re-solves without the joints that sit on a limit and are pushed outwards, so the other joints
     make up for them (mink gets the same effect from its QP's limit constraints).
@@ -210,7 +216,7 @@ def _ik_step(kin: ArmKinematics, config: IKConfig, target_pos: jnp.ndarray, targ
         blocked = ((q <= kin.lower) & (dq < 0)) | ((q >= kin.upper) & (dq > 0))
         free = jnp.where(blocked, 0.0, free)
     dq = dq * jnp.minimum(1.0, config.max_step / (jnp.max(jnp.abs(dq)) + 1e-12))
-    return jnp.clip(q + dq, kin.lower, kin.upper)
+    return jnp.clip(q + dq, kin.lower, kin.upper), jnp.linalg.norm(error)
 
 
 def _spd_solve(a: jnp.ndarray, b: jnp.ndarray) -> jnp.ndarray:
@@ -237,7 +243,16 @@ def _solve_one(kin: ArmKinematics, config: IKConfig, q_init: jnp.ndarray, target
                target_quat: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray, jnp.ndarray]:
     target_quat = target_quat / jnp.linalg.norm(target_quat)
     q = jnp.clip(q_init, kin.lower, kin.upper)
-    q = jax.lax.fori_loop(0, config.iterations, lambda _, q: _ik_step(kin, config, target_pos, target_quat, q), q)
+
+    def unfinished(carry):
+        iteration, _, error = carry
+        return (iteration < config.iterations) & (error >= config.tolerance)
+
+    def step(carry):
+        iteration, q, _ = carry
+        return (iteration + 1, *_ik_step(kin, config, target_pos, target_quat, q))
+
+    _, q, _ = jax.lax.while_loop(unfinished, step, (0, q, jnp.asarray(jnp.inf, q.dtype)))
     tcp_pos, tcp_quat = forward_kinematics(kin, q)
     return q, jnp.linalg.norm(target_pos - tcp_pos), jnp.linalg.norm(rot.quat_error(target_quat, tcp_quat))
 
