@@ -217,6 +217,19 @@ def test_a_batch_solves_like_its_items_one_by_one(kin, cases):
         np.testing.assert_allclose(single[0][0], batch[0][i], atol=1e-5)
 
 
+def test_a_solve_stops_once_the_error_it_stepped_from_is_below_the_tolerance(kin, cases):
+    seeds, target_pos, target_quat = (a[:BATCH] for a in cases["servo"])
+    # Every servo target is within 1 (weighted metres) of its seed: one step, then the check stops the solve.
+    one_step = jax_ik.solve_ik(kin, seeds, target_pos, target_quat, jax_ik.IKConfig(iterations=1, tolerance=0.0))
+    stopped = jax_ik.solve_ik(kin, seeds, target_pos, target_quat, jax_ik.IKConfig(tolerance=1.0))
+    np.testing.assert_allclose(stopped[0], one_step[0], atol=1e-6)
+    # The default tolerance is far below the reach test: the result is the fixed 20 iterations' to within 1e-5.
+    fixed = jax_ik.solve_ik(kin, seeds, target_pos, target_quat, jax_ik.IKConfig(tolerance=0.0))
+    default = jax_ik.solve_ik(kin, seeds, target_pos, target_quat)
+    np.testing.assert_allclose(default[1], fixed[1], atol=1e-5)
+    assert not np.allclose(stopped[0], fixed[0], atol=1e-4)
+
+
 def test_actions_to_targets_reads_the_original_action_layout():
     rng = np.random.default_rng(6)
     actions = np.column_stack([rng.uniform(-0.1, 0.1, (8, 3)), rng.uniform(-np.pi, np.pi, (8, 3))])
