@@ -243,6 +243,32 @@ def test_a_push_after_a_touch_on_another_side_goes_round_above_the_object():
     np.testing.assert_allclose(np.asarray(goal), np.asarray(pre_push))
 
 
+def test_a_fingertip_that_rode_over_goes_back_round_above_the_object():
+    # A 1.5 cm flat object pushed along +y from its near face at y = 0 (push point 8 mm above the table at z = 0).
+    top, push_point, direction = 0.015, jnp.array([0.0, 0.0, 0.008]), jnp.array([0.0, 1.0, 0.0])
+    hand_axis = jnp.array([0.0, 0.7071, -0.7071])  # leaning over the push, fingers forward and down
+    to_tcp = -predicates.FINGERTIP_OFFSET * hand_axis
+    goal = jnp.array([0.5, 0.5, 0.5])  # stands for the approach goal
+
+    def waypoint(tip, in_contact=False):
+        return np.asarray(machine.over_and_back(goal, tip + to_tcp, tip, push_point, direction, hand_axis, top,
+                                                jnp.asarray(in_contact)))
+
+    clear = top + machine.DETOUR_CLEARANCE
+    # Approaching from behind, or pressing the face: the approach goes on.
+    np.testing.assert_allclose(waypoint(jnp.array([0.0, -0.03, 0.008])), goal)
+    np.testing.assert_allclose(waypoint(jnp.array([0.0, 0.03, 0.008]), in_contact=True), goal)
+    # Past the object at its height: straight up until the fingertip clears the top.
+    tip = jnp.array([0.0, 0.03, 0.008])
+    np.testing.assert_allclose(waypoint(tip), np.asarray(tip + to_tcp).copy() + [0, 0, clear - 0.008], atol=1e-6)
+    # Up there, still over it: back at that height to PUSH_BACK_OFF behind the push point ...
+    behind = np.array([0.0, -machine.PUSH_BACK_OFF, 0.008])
+    np.testing.assert_allclose(waypoint(jnp.array([0.0, 0.03, clear])), behind + [0, 0, clear - 0.008] + to_tcp,
+                               atol=1e-6)
+    # ... and down once behind it.
+    np.testing.assert_allclose(waypoint(jnp.array([0.0, -0.03, clear])), behind + to_tcp, atol=1e-6)
+
+
 def test_a_push_counts_once_far_enough_even_if_the_object_springs_back():
     # Stages 4-5 come after the object went far enough: a small spring back does not undo the push.
     assert bool(machine.push_counted(True, True, 5, False)) and bool(machine.push_counted(True, True, 4, False))

@@ -78,6 +78,10 @@ PUSH_STEER = 0.15
 PUSH_STEER_LIMIT = 0.002
 """Share of the fingertip's sideways offset from the line through the object's middle corrected per step, and the
 most (m) corrected per step (sliding the fingertip fast along the object drags it sideways)."""
+RIDE_OVER = 0.015
+"""A fingertip this far (m) past the push point along the push, out of touch, has ridden over the object (a knife,
+a flat box): it goes back round above the object (up, back at height, down behind it) instead of straight back,
+which would drag the object the wrong way."""
 PUSH_SLIP_STEPS = 2
 """Steps a push goes on without touching before the fingertip approaches the push point again."""
 PUSH_LOOKAHEAD = 0.04
@@ -400,6 +404,22 @@ def _push_pose(point, direction, tilt):
     return pos.astype(jnp.float32), candidates.touch_quat(z_axis).astype(jnp.float32)
 
 
+def over_and_back(goal, cmd_pos, tip, push_point, direction, z_axis, object_top, in_contact):
+    """The approach goal of a push (`goal`), or, for a fingertip out of touch that rode over the object (more than
+    RIDE_OVER past the push point along `direction`) or is on its way back above it, the next waypoint round above
+    it: straight up until the fingertip clears the top by DETOUR_CLEARANCE, back at that height until it is
+    PUSH_BACK_OFF behind the push point, then down."""
+    clear = object_top + DETOUR_CLEARANCE
+    tip_to_tcp = -predicates.FINGERTIP_OFFSET * z_axis
+    behind = push_point - PUSH_BACK_OFF * direction
+    along = (tip - push_point) @ direction
+    past = along > RIDE_OVER
+    high = tip[2] > object_top + DETOUR_CLEARANCE / 2
+    lift = cmd_pos.at[2].add(clear - tip[2])
+    back = jnp.where(along > -PUSH_BACK_OFF / 2, behind.at[2].set(clear), behind) + tip_to_tcp
+    return jnp.where(~in_contact & (past | high), jnp.where(past & ~high, lift, back), goal)
+
+
 def push_approach(anchor, z_axis, pre_push, cmd_pos, object_top):
     """Waypoints from where the touch before a push ended (`anchor`, the hand's axis `z_axis`) to the pre-push pose:
     the back-off goal, the current goal towards the pre-push pose, and whether the hand is still crossing over.
@@ -528,6 +548,8 @@ def _act_one(o: OracleState, data, geo: PartGeometry, rows, env, follow_env: boo
     push_stage = jnp.clip(stage, 0, 5)
     # Touching again stops at the object (the pads may press it before TOUCHING's fingertip point is near).
     push_goal = jnp.where((push_stage == 5) & in_contact, o.cmd_pos, push_goals[push_stage])
+    push_goal = jnp.where(push_stage == 2, over_and_back(push_goal, o.cmd_pos, tip, push_point, direction, z_axis,
+                                                         object_top, in_contact), push_goal)
     push_turn = jnp.where((push_stage == 1) | (push_stage == 2), push_quat, o.cmd_quat)
     push_speed = jnp.where((push_stage == 2) | (push_stage >= 3), PUSH_SPEED, FREE_SPEED)
     pos_p, quat_p = _toward(o.cmd_pos, o.cmd_quat, push_goal, push_turn, push_speed, TURN_SPEED)
