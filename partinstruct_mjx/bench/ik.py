@@ -166,8 +166,8 @@ def markdown(results: IKBenchResults) -> str:
         f"max step {cfg.max_step:g} rad, orientation weight {cfg.orientation_weight:g} m/rad. Targets are TCP poses "
         f"of random arm configurations over the table near the objects; 'servo' seeds are those configurations plus "
         f"0.05 rad (3 deg) of noise per joint, 'from home' seeds are the home pose; speed is measured on servo "
-        f"targets (3 deg from the solution: the closed-loop case of an env step). Reached = within 1 mm and 0.01 rad. mink "
-        f"(`control/mink_ik.py`, up to 300 QP iterations until 0.1 mm / 0.001 rad) runs one target after another on "
+        f"targets (3 deg from the solution: the closed-loop case of an env step). Reached = within 1 mm and 0.01 "
+        f"rad. mink (`control/mink_ik.py`, up to 300 QP iterations until 0.1 mm / 0.001 rad) runs one target after another on "
         f"one CPU thread.\n\n"
         "| batch | JAX solves/s (median) | range over repeats | compile s |\n|---|---|---|---|\n" + speed + "\n\n"
         "| targets | JAX reached | mink reached | mink solves/s |\n|---|---|---|---|\n" + accuracy + "\n")

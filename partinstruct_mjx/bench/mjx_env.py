@@ -2,8 +2,8 @@
 observation), vmapped over a batch and jitted, on the current JAX device.
 
 Per object and batch size; then, on the object with the most collision hulls, variants of its compiled model that
-only change what collides (the collision budget, DESIGN.md) or the constraint solver's iteration caps, and MuJoCo Warp (`impl="warp"`) when warp-lang is
-installed. Each jitted call scans `steps` env steps; the TCP targets circle 5 cm around the settled TCP while the
+only change what collides (the collision budget, DESIGN.md) or the constraint solver's iteration caps, and MuJoCo
+Warp (`impl="warp"`) when warp-lang is installed. Each jitted call scans `steps` env steps; the TCP targets circle 5 cm around the settled TCP while the
 gripper opens and closes, so IK and contacts do real work.
 """
 
@@ -90,8 +90,8 @@ def _short_line_search(scene: Scene, model: mujoco.MjModel) -> None:
 
 
 def _one_newton_iteration(scene: Scene, model: mujoco.MjModel) -> None:
-    """All pairs as built, 4 line-search iterations and a single Newton iteration per physics step (no loop)."""
-    model.opt.ls_iterations = 4
+    """`_short_line_search` and a single Newton iteration per physics step (no loop)."""
+    _short_line_search(scene, model)
     model.opt.iterations = 1
 
 
