@@ -32,7 +32,7 @@ from partinstruct_mjx.control import jax_ik
 from partinstruct_mjx.env import STEP_LIMIT, STEP_LIMIT_TEST4, EnvConfig, joint_targets, observe
 from partinstruct_mjx.errors import SceneError, TaskError
 from partinstruct_mjx.sim import panda
-from partinstruct_mjx.sim.mjx_backend import extract_state, scene_indices
+from partinstruct_mjx.sim.mjx_backend import extract_state, fresh_data, put_model, scene_indices
 from partinstruct_mjx.sim.mujoco_backend import MujocoBackend
 from partinstruct_mjx.sim.scene import build_scene
 from partinstruct_mjx.sim.state import SceneState
@@ -100,10 +100,13 @@ class BraxPartInstructEnv(Env):
       episodes: `partinstruct_mjx.tasks.episodes.Episode`s; at least one.
       config: EnvConfig with backend 'mjx' (the default here); object_noise must be 0 (states are pre-settled).
       skill_mode: success = the skill chain (True) or the task goals (False); None takes `config.skill_mode`.
+      batch_size: how many environments are stepped together; only MJX's Warp implementation (picked by MJX on
+        a CUDA GPU with MJX_GPU_DEFAULT_WARP=true) uses it, to size the contact buffer all of them share. Under
+        Warp, build batched states with a vmapped `reset` (not by indexing another batch's state).
     """
 
     def __init__(self, object_xml: str | Path, episodes, config: EnvConfig = EnvConfig(backend="mjx"),
-                 skill_mode: bool | None = None):
+                 skill_mode: bool | None = None, batch_size: int = 1):
         episodes = list(episodes)
         if not episodes:
             raise TaskError("BraxPartInstructEnv needs at least one episode, got an empty list")
@@ -133,7 +136,8 @@ class BraxPartInstructEnv(Env):
         self.kinematics = jax_ik.ArmKinematics.from_scene(self.scene)
         compiled = progress.compile_episodes([(e.task_type, list(e.chain)) for e in episodes], self.part_names)
         self._compiled = jax.tree.map(jnp.asarray, compiled)
-        self.model = mjx.put_model(self.scene.model)
+        self.model = put_model(self.scene.model)
+        self._fresh = fresh_data(self.scene.model, self.model, batch_size)
         self._indices = scene_indices(self.scene)
         self._initial = _settle(self.scene, poses, config.num_threads)
 
@@ -160,10 +164,9 @@ class BraxPartInstructEnv(Env):
         """Start one of the episodes (drawn uniformly from `rng`) from its settled state."""
         episode = jax.random.randint(rng, (), 0, len(self.episodes))
         start = jax.tree.map(lambda x: x[episode], self._initial)
-        data = mjx.make_data(self.model)
-        data = data.replace(time=start["time"], qpos=start["qpos"], qvel=start["qvel"], act=start["act"],
+        data = self._fresh.replace(time=start["time"], qpos=start["qpos"], qvel=start["qvel"], act=start["act"],
                             qacc_warmstart=start["qacc_warmstart"],
-                            ctrl=jnp.asarray(panda.HOME_CTRL, data.ctrl.dtype))
+                            ctrl=jnp.asarray(panda.HOME_CTRL, self._fresh.ctrl.dtype))
         data = mjx.forward(self.model, data)
         scene = extract_state(self.model, data, self._indices)
         compiled = jax.tree.map(lambda x: x[episode][None], self._compiled)

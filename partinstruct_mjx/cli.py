@@ -72,6 +72,9 @@ def main(argv: list[str] | None = None) -> int:
                        help="control steps per timed run (default 200; mjx: env steps per jitted call, default 20)")
     bench.add_argument("--repeats", type=int, default=None,
                        help="timed runs per batch size (default 5; 1 for demos, whose runs take minutes)")
+    bench.add_argument("--impls", nargs="+", choices=["jax", "warp"], default=["jax", "warp"],
+                       help="mjx suite: MJX implementations to measure (default both; warp needs warp-lang and a "
+                            "CUDA GPU). A run of one writes its own section of the output")
     bench.add_argument("--episodes", type=int, default=64, help="demos suite: train episodes per run (default 64)")
     bench.add_argument("--backend", choices=["mujoco", "mjx"], default="mujoco",
                        help="demos suite: physics backend (default mujoco; mjx on a GPU)")
@@ -277,8 +280,9 @@ def _bench_mjx(args, info: dict, command: str) -> tuple[str, str, str, list[dict
     from partinstruct_mjx.bench import mjx_env
     from partinstruct_mjx.bench.report import write_report
 
-    device = mjx_env.device_name()
-    title, heading = f"mjx_{device.lower().replace(' ', '_')}", f"MJX env steps (impl jax, {device})"
+    device, impls = mjx_env.device_name(), tuple(args.impls)
+    title = f"mjx_{device.lower().replace(' ', '_')}" + ("" if set(impls) == set(mjx_env.IMPLS) else f"_{impls[0]}")
+    heading = f"MJX env steps (impl {', '.join(impls)}, {device})"
 
     def write(results):
         if str(args.output) != "-":
@@ -287,7 +291,7 @@ def _bench_mjx(args, info: dict, command: str) -> tuple[str, str, str, list[dict
 
     objects = args.object or [paths.assets_root() / "objects/mug/mug_000/object.xml"]
     results = mjx_env.run(objects, tuple(args.batch_sizes or mjx_env.DEFAULT_BATCH_SIZES), args.steps, args.repeats,
-                          on_row=write)
+                          on_row=write, impls=impls)
     table = mjx_env.markdown(results)
     print(table)
     return title, heading, table, mjx_env.data_rows(results)

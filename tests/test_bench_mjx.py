@@ -94,11 +94,11 @@ def _results(per_s_4096=120_000.0, compile_s=20.0) -> mjx_env.MjxBenchResults:
 
 def test_markdown_rows_and_target():
     text = mjx_env.markdown(_results())
-    assert "| 103619 | 16 | 248 | 4,096 | 120,000 | 108,000 - 132,000 | 20.00 | 15.0 |" in text
+    assert "| 103619 | jax | 16 | 248 | 4,096 | 120,000 | 108,000 - 132,000 | 20.00 | 15.0 |" in text
     assert "Collision and solver budget, `103619` at batch 4,096" in text
     assert "| pads-object and object-table only | jax | 16 | 96 | 200,000 |" in text
-    assert "| warp | 16 | - | not installed (x) | - | - | - |" in text
-    assert "120,000 env steps/s, compile 20.0 s (step) + 15.0 s (reset): met" in text
+    assert "| 103619 | warp | 16 | - | 4,096 | not installed (x) | - | - | - |" in text
+    assert "`103619` (jax) 120,000 env steps/s, compile 20.0 s (step) + 15.0 s (reset): met" in text
     assert "compile 50.0 s (step) + 15.0 s (reset): not met" in mjx_env.markdown(_results(compile_s=50.0))
     assert "not met" in mjx_env.markdown(_results(per_s_4096=90_000.0))
     rows = mjx_env.data_rows(_results())
@@ -113,7 +113,7 @@ def test_warp_row_says_not_installed_when_warp_is_missing():
 
     if mjx_warp.WARP_INSTALLED:
         pytest.skip("warp-lang is installed here")
-    row = mjx_env.measure_warp(MUG, 4096, 20, 5)
+    [row] = mjx_env.measure_warp(MUG, (256, 4096), 20, 5)
     assert row.impl == "warp" and row.timing is None and row.note.startswith("not installed")
 
 
@@ -159,8 +159,8 @@ def test_mjx_suite_end_to_end_on_cpu(tmp_path, monkeypatch, capsys):
     assert main(["bench", "mjx", "--object", str(MUG), "--batch-sizes", "2", "--steps", "2", "--repeats", "1",
                  "--output", str(report)]) == 0
     text = report.read_text()
-    assert "<!-- bench:mjx_cpu -->" in text and "## MJX env steps (impl jax, CPU)" in text
-    assert "| mug_000 | 10 |" in text and "| object-table only | jax | 10 |" in text
+    assert "<!-- bench:mjx_cpu -->" in text and "## MJX env steps (impl jax, warp, CPU)" in text
+    assert "| mug_000 | jax | 10 |" in text and "| object-table only | jax | 10 |" in text
     assert "Target not assessed: batch 4,096 was not measured." in text
     rows = read_data(tmp_path / "bench_data")["mjx_cpu"]["rows"]
     assert [(r["variant"], r["impl"]) for r in rows] == [(mjx_env.AS_BUILT, "jax"), ("object-table only", "jax"),

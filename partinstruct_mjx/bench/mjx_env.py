@@ -1,10 +1,11 @@
 """MJX env steps per second: `BraxPartInstructEnv.step` (IK, MJX physics substeps, state extraction, task progress,
 observation), vmapped over a batch and jitted, on the current JAX device.
 
-Per object and batch size; then, on the object with the most collision hulls, variants of its compiled model that
-only change what collides (the collision budget, DESIGN.md) or the constraint solver's iteration caps, and MuJoCo
-Warp (`impl="warp"`) when warp-lang is installed. Each jitted call scans `steps` env steps; the TCP targets circle 5 cm around the settled TCP while the
-gripper opens and closes, so IK and contacts do real work.
+Per object and batch size on MJX's JAX implementation; on the object with the most collision hulls, variants of
+its compiled model that only change what collides (the collision budget, DESIGN.md) or the constraint solver's
+iteration caps; then per object and batch size on MuJoCo Warp (`impl="warp"`) when warp-lang is installed and a CUDA
+GPU is present. Each jitted call scans `steps` env steps; the TCP targets circle 5 cm around the settled TCP while
+the gripper opens and closes, so IK and contacts do real work.
 """
 
 from __future__ import annotations
@@ -36,6 +37,8 @@ TARGET_BATCH = 4096
 TARGET_STEPS_PER_S = 100_000
 TARGET_COMPILE_S = 60.0
 """DESIGN.md: >= 100,000 env steps/s at batch 4,096 with compile < 60 s on one H100."""
+IMPLS = ("jax", "warp")
+"""MJX implementations the suite measures."""
 EPISODES = 8
 """Distinct pre-settled episodes (placements); the batch cycles through them."""
 CIRCLE_RADIUS = 0.05
@@ -180,29 +183,39 @@ def object_scene(object_xml: Path) -> Scene:
     return build_scene(SceneConfig(object_xml=str(object_xml)))
 
 
-def make_env(object_xml: Path):
-    """A BraxPartInstructEnv (requires brax) of the object with its EPISODES bench episodes, settled on the CPU."""
+def make_env(object_xml: Path, batch_size: int = 1):
+    """A BraxPartInstructEnv (requires brax) of the object with its EPISODES bench episodes, settled on the CPU;
+    `batch_size` sizes Warp's shared contact buffer."""
     from partinstruct_mjx.brax_env import BraxPartInstructEnv
 
-    return BraxPartInstructEnv(object_xml, bench_episodes(object_scene(object_xml)), EnvConfig(backend="mjx"))
+    return BraxPartInstructEnv(object_xml, bench_episodes(object_scene(object_xml)), EnvConfig(backend="mjx"),
+                               batch_size=batch_size)
 
 
-def reset_states(env) -> tuple[object, float]:
-    """Every episode's start state (one jitted, vmapped reset) and the wall seconds of that first call."""
-    keys = jax.random.split(jax.random.PRNGKey(0), len(env.episodes))
+def reset_states(env, count: int | None = None) -> tuple[object, float]:
+    """`count` start states (default: one per episode; one jitted, vmapped reset, episodes drawn from the keys) and
+    the wall seconds of that first call."""
+    keys = jax.random.split(jax.random.PRNGKey(0), count or len(env.episodes))
     start = time.perf_counter()
     states = jax.jit(jax.vmap(env.reset))(keys)
     jax.block_until_ready(states)
     return states, time.perf_counter() - start
 
 
-def measure(env, states, batch_size: int, steps: int, repeats: int) -> Throughput:
-    """Env steps/s of `steps` jitted, vmapped env steps per call over `batch_size` environments that cycle through
-    `states`; JAX's caches are cleared first, so the compile time is the step's own."""
-    index = jnp.arange(batch_size) % len(env.episodes)
-    state = jax.tree.map(lambda x: x[index], states)
-    actions = circling_actions(np.asarray(state.obs[:, :7]), steps)
+def cycled(states, batch_size: int):
+    """`batch_size` states that cycle through the given ones (MJX's JAX implementation, whose data is all per
+    environment; Warp's shared contact buffer cannot be indexed like this)."""
+    index = jnp.arange(batch_size) % states.obs.shape[0]
+    return jax.tree.map(lambda x: x[index], states)
+
+
+def measure(env, states, steps: int, repeats: int) -> Throughput:
+    """Env steps/s of `steps` jitted, vmapped env steps per call over the batch of `states`; JAX's caches are
+    cleared first, so the compile time is the step's own."""
+    batch_size = states.obs.shape[0]
+    actions = circling_actions(np.asarray(states.obs[:, :7]), steps)
     step = jax.vmap(env.step)
+    state = states
 
     @jax.jit
     def rollout(state, actions):
@@ -247,33 +260,39 @@ def _warp_default() -> Iterator[None]:
             os.environ["MJX_GPU_DEFAULT_WARP"] = previous
 
 
-def measure_warp(object_xml: Path, batch_size: int, steps: int, repeats: int) -> Row:
-    """The same env on MuJoCo Warp when warp-lang is installed, or a row saying why it was not measured."""
+def measure_warp(object_xml: Path, batch_sizes: tuple[int, ...], steps: int, repeats: int) -> list[Row]:
+    """The same env on MuJoCo Warp at each batch size when warp-lang is installed, or a row saying why not."""
     from mujoco.mjx import warp as mjx_warp
 
     name, hulls = object_name(object_xml), len(object_scene(object_xml).object_geoms)
+
+    def unmeasured(note: str, batch: int = TARGET_BATCH) -> Row:
+        return Row(name, AS_BUILT, "warp", batch, hulls, None, None, note=note)
+
     if not mjx_warp.WARP_INSTALLED:
-        return Row(name, AS_BUILT, "warp", batch_size, hulls, None, None,
-                   note="not installed (warp-lang, the `warp` module MuJoCo Warp needs, is not importable)")
+        return [unmeasured("not installed (warp-lang, the `warp` module MuJoCo Warp needs, is not importable)")]
+    rows = []
     with _warp_default():
-        try:
-            env = make_env(object_xml)
-            if env.model.impl != mjx.Impl.WARP:
-                return Row(name, AS_BUILT, "warp", batch_size, hulls, None, None,
-                           note=f"not measured: MJX picked impl '{env.model.impl.value}' on this device")
-            states, reset_s = reset_states(env)
-            timing = measure(env, states, batch_size, steps, repeats)
-        except Exception as err:  # a failed attempt is a result of this row: record it
-            message = str(err).splitlines()[0] if str(err) else ""
-            return Row(name, AS_BUILT, "warp", batch_size, hulls, None, None,
-                       note=f"failed: {type(err).__name__}: {message[:200]}")
-    return Row(name, AS_BUILT, "warp", batch_size, hulls, None, timing, reset_s)
+        for batch in batch_sizes:
+            try:
+                env = make_env(object_xml, batch)
+                if env.model.impl != mjx.Impl.WARP:
+                    return [unmeasured(f"not measured: MJX picked impl '{env.model.impl.value}' on this device")]
+                states, reset_s = reset_states(env, batch)
+                rows.append(Row(name, AS_BUILT, "warp", batch, hulls, None, measure(env, states, steps, repeats),
+                                reset_s))
+            except Exception as err:  # a failed attempt is a result of this row: record it
+                message = str(err).splitlines()[0] if str(err) else ""
+                rows.append(unmeasured(f"failed: {type(err).__name__}: {message[:200]}", batch))
+    return rows
 
 
 def run(objects: list[Path], batch_sizes: tuple[int, ...] = DEFAULT_BATCH_SIZES, steps: int = 20,
-        repeats: int = 5, on_row: Callable[[MjxBenchResults], None] | None = None) -> MjxBenchResults:
-    """Measure every object at every batch size, then the variants and Warp on the object with the most hulls at
-    TARGET_BATCH (or the largest batch size when it is not among them); `on_row` sees the results after each row."""
+        repeats: int = 5, on_row: Callable[[MjxBenchResults], None] | None = None,
+        impls: tuple[str, ...] = IMPLS) -> MjxBenchResults:
+    """Measure every object at every batch size on MJX's JAX implementation with, on the object with the most
+    hulls, the variants at TARGET_BATCH (or the largest batch size when it is not among them); then every object at
+    every batch size on Warp. `impls` picks the implementations; `on_row` sees the results after each row."""
     config = EnvConfig(backend="mjx")
     results = MjxBenchResults(device_name(), steps, repeats, config.scene.substeps, config.ik.iterations,
                               config.scene.solver_iterations, config.scene.linesearch_iterations)
@@ -287,12 +306,12 @@ def run(objects: list[Path], batch_sizes: tuple[int, ...] = DEFAULT_BATCH_SIZES,
         if on_row is not None:
             on_row(results)
 
-    for xml in objects:
+    for xml in objects if "jax" in impls else ():
         env = make_env(xml)
         states, reset_s = reset_states(env)
         for batch in batch_sizes:
             add(Row(object_name(xml), AS_BUILT, "jax", batch, hulls[xml], contact_slots(states),
-                    measure(env, states, batch, steps, repeats), reset_s))
+                    measure(env, cycled(states, batch), steps, repeats), reset_s))
         if xml != largest:
             continue
         for variant in VARIANTS:
@@ -301,8 +320,11 @@ def run(objects: list[Path], batch_sizes: tuple[int, ...] = DEFAULT_BATCH_SIZES,
             moved = with_model(env, states, model)
             colliding = int(np.count_nonzero(model.geom_contype[env.scene.object_geoms]))
             add(Row(object_name(xml), variant.name, "jax", budget_batch, colliding, contact_slots(moved),
-                    measure(env, moved, budget_batch, steps, repeats)))
-        add(measure_warp(xml, budget_batch, steps, repeats))
+                    measure(env, cycled(moved, budget_batch), steps, repeats)))
+    if "warp" in impls:
+        for xml in objects:
+            for row in measure_warp(xml, batch_sizes, steps, repeats):
+                add(row)
     return results
 
 
@@ -339,14 +361,14 @@ def _row_line(r: Row) -> str:
 def target_line(results: MjxBenchResults) -> str:
     """The DESIGN.md target against the as-built rows at TARGET_BATCH, met or not, or why it is not assessed."""
     rows = [r for r in results.rows
-            if r.variant == AS_BUILT and r.impl == "jax" and r.batch_size == TARGET_BATCH and r.timing]
+            if r.variant == AS_BUILT and r.batch_size == TARGET_BATCH and r.timing]
     if not rows:
         return f"Target not assessed: batch {TARGET_BATCH:,} was not measured."
     parts = []
     for r in rows:
         compile_s = r.timing.compile_s + r.reset_s
         met = r.timing.per_s >= TARGET_STEPS_PER_S and compile_s < TARGET_COMPILE_S
-        parts.append(f"`{r.object_name}` {r.timing.per_s:,.0f} env steps/s, compile {r.timing.compile_s:.1f} s "
+        parts.append(f"`{r.object_name}` ({r.impl}) {r.timing.per_s:,.0f} env steps/s, compile {r.timing.compile_s:.1f} s "
                      f"(step) + {r.reset_s:.1f} s (reset): {'met' if met else 'not met'}")
     where = " (measured on a CPU, not the target's H100)" if results.device == "CPU" else ""
     return (f"Target (DESIGN.md: >= {TARGET_STEPS_PER_S:,} env steps/s at batch {TARGET_BATCH:,}, compile < "
@@ -355,10 +377,10 @@ def target_line(results: MjxBenchResults) -> str:
 
 def markdown(results: MjxBenchResults) -> str:
     """The per-object table, the collision-budget table (when measured) and the target line."""
-    sweep = [r for r in results.rows if r.variant == AS_BUILT and r.impl == "jax"]
-    budget = [r for r in results.rows if r.variant != AS_BUILT or r.impl != "jax"]
+    sweep = [r for r in results.rows if r.variant == AS_BUILT]
+    budget = [r for r in results.rows if r.variant != AS_BUILT]
     text = (
-        f"MJX (`impl=\"jax\"`) on {results.device}: `BraxPartInstructEnv.step` vmapped over the batch and jitted, "
+        f"MJX on {results.device}: `BraxPartInstructEnv.step` vmapped over the batch and jitted, "
         f"{results.steps} env steps per call (`lax.scan`, the state carried from call to call). One env step = the batched JAX IK ({results.ik_iterations} "
         f"iterations) of a 7-D pose action, {results.substeps} MJX physics substeps of 5 ms, the SceneState "
         f"(finger contacts with forces), the progress of a type-3 skill chain (its predicates) and the observation. "
@@ -368,12 +390,16 @@ def markdown(results: MjxBenchResults) -> str:
         f"env steps), range = slowest - fastest repeat. Step compile = first call (trace, compile, run; JAX caches "
         f"cleared, no persistent cache) minus a warm call; reset = first call of the jitted, vmapped reset over the "
         f"{EPISODES} episodes (compile + run; once per model, so the same for every batch size). Contact slots: the contacts MJX evaluates every substep, fixed by the "
-        f"collision set.\n\n"
-        "| object | hulls | contact slots | batch | env steps/s (median) | range over repeats | step compile s "
-        "| reset s |\n|---|---|---|---|---|---|---|---|\n"
-        + "".join(f"| {r.object_name} | {r.hulls} | {r.contacts} | {r.batch_size:,} | {_cells(r)} |\n" for r in sweep))
+        f"collision set. Warp (`impl=\"warp\"`, MuJoCo Warp through MJX): contacts are found per step into a "
+        f"buffer shared by the batch, so a batch is reset as a whole (one reset per batch size, its episodes drawn "
+        f"from the keys) and its reset time is per batch size; the first Warp row's times include building Warp's "
+        f"CUDA kernels unless Warp's own kernel cache already holds them.\n\n"
+        "| object | impl | hulls | contact slots | batch | env steps/s (median) | range over repeats | step compile s "
+        "| reset s |\n|---|---|---|---|---|---|---|---|---|\n"
+        + "".join(f"| {r.object_name} | {r.impl} | {r.hulls} | {'-' if r.contacts is None else r.contacts} | "
+                  f"{r.batch_size:,} | {_cells(r)} |\n" for r in sweep))
     if budget:
-        reference = [r for r in sweep if r.object_name == budget[0].object_name
+        reference = [r for r in sweep if r.impl == "jax" and r.object_name == budget[0].object_name
                      and r.batch_size == budget[0].batch_size]
         text += (
             f"\nCollision and solver budget, `{budget[0].object_name}` at batch {budget[0].batch_size:,}: each variant "
