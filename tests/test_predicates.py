@@ -280,7 +280,10 @@ def test_part_facts_match_the_single_predicates_on_an_oracle_rollout(obj_id, typ
     assert 0 < idle.sum() < len(idle)
     idle_data = jax.tree_util.tree_map(lambda x: x[idle], data)
     skipped = jax.jit(predicates.batch_part_facts)(idle_data, geo, masks[idle])
-    for facts, rows in ((single, slice(None)), (batched, slice(None)), (skipped, idle)):
+    without_centers = jax.jit(predicates.batch_part_facts)(data, geo, masks, jax.numpy.asarray(False))
+    np.testing.assert_array_equal(without_centers.centers, 0.0)
+    for facts, rows in ((single, slice(None)), (batched, slice(None)), (skipped, idle),
+                        (without_centers.replace(centers=batched.centers), slice(None))):
         np.testing.assert_array_equal(facts.grasped, grasped[rows])
         np.testing.assert_array_equal(facts.touched, touched[rows])
         np.testing.assert_allclose(facts.centers, np.asarray(reference[2])[rows], atol=1e-6)

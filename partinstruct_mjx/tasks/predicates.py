@@ -152,22 +152,27 @@ class PartFacts:
 
 def part_facts(state, geo: PartGeometry, masks: jnp.ndarray) -> PartFacts:
     """`PartFacts` of one environment; each distinct cloud is transformed and searched once."""
-    return _facts(state, geo, masks, contact_regions(state, geo, masks), tip_near(state, geo, masks))
+    return _facts(state, geo, contact_regions(state, geo, masks), tip_near(state, geo, masks),
+                  part_centers(state, geo, masks))
 
 
-def batch_part_facts(state, geo: PartGeometry, masks: jnp.ndarray) -> PartFacts:
+def batch_part_facts(state, geo: PartGeometry, masks: jnp.ndarray, centers=True) -> PartFacts:
     """`part_facts` of a batch (leading dimension B): the contact search runs only when some finger of the batch
     presses the object and the fingertip search only when some gripper is closed, since GRASPING and TOUCHING are
-    false otherwise whatever the searches find."""
+    false otherwise whatever the searches find; the part centres only when `centers` (a traced bool: some goal row
+    of the batch is FACING), zeros otherwise."""
     batch = masks.shape[0]
     spatial = masks.shape[1]
+    rows = geo.points.shape[0]
     pressed = jax.vmap(pressing, in_axes=(0, None))(state, geo).any()
     regions = jax.lax.cond(pressed, lambda: jax.vmap(contact_regions, in_axes=(0, None, 0))(state, geo, masks),
                            lambda: jnp.zeros((batch, 2, spatial), bool))
     closed = jax.vmap(fingers_closed)(state).any()
     tips = jax.lax.cond(closed, lambda: jax.vmap(tip_near, in_axes=(0, None, 0))(state, geo, masks),
-                        lambda: jnp.zeros((batch, geo.points.shape[0]), bool))
-    return jax.vmap(_facts, in_axes=(0, None, 0, 0, 0))(state, geo, masks, regions, tips)
+                        lambda: jnp.zeros((batch, rows), bool))
+    means = jax.lax.cond(centers, lambda: jax.vmap(part_centers, in_axes=(0, None, 0))(state, geo, masks),
+                         lambda: jnp.zeros((batch, rows, 3), geo.points.dtype))
+    return jax.vmap(_facts, in_axes=(0, None, 0, 0, 0))(state, geo, regions, tips, means)
 
 
 def _on_object(state, geo: PartGeometry) -> tuple[jnp.ndarray, jnp.ndarray]:
@@ -213,18 +218,22 @@ def tip_near(state, geo: PartGeometry, masks: jnp.ndarray) -> jnp.ndarray:
     return jnp.concatenate([near_semantic.any(axis=-1), (near_whole & _spatial_rows(geo, masks)).any(axis=-1)])
 
 
-def _facts(state, geo: PartGeometry, masks, regions, tips) -> PartFacts:
+def part_centers(state, geo: PartGeometry, masks: jnp.ndarray) -> jnp.ndarray:
+    """(K, 3) world mean point of each part row's (masked) cloud."""
     n = geo.num_semantic
     semantic = world_points(state.body_pos, state.body_quat, geo.points[:n], geo.bodies[:n])  # (n, M, 3)
     whole = object_points(state, geo)
     semantic_valid = geo.valid[:n].astype(semantic.dtype)
     rows = _spatial_rows(geo, masks).astype(whole.dtype)
-    centers = jnp.concatenate([jnp.einsum("km,kmc->kc", semantic_valid, semantic)
-                               / jnp.maximum(semantic_valid.sum(axis=-1), 1)[:, None],
-                               (rows @ whole) / jnp.maximum(rows.sum(axis=-1), 1)[:, None]])
+    return jnp.concatenate([jnp.einsum("km,kmc->kc", semantic_valid, semantic)
+                            / jnp.maximum(semantic_valid.sum(axis=-1), 1)[:, None],
+                            (rows @ whole) / jnp.maximum(rows.sum(axis=-1), 1)[:, None]])
+
+
+def _facts(state, geo: PartGeometry, regions, tips, centers) -> PartFacts:
+    n = geo.num_semantic
     on_object, label = _on_object(state, geo)
     labelled = (on_object[..., None] & (label[..., None] == jnp.arange(n))).any(axis=1)  # (2, n)
     on_part = jnp.concatenate([labelled, regions, on_object.any(axis=-1)[:, None]], axis=1)  # (2, K)
     return PartFacts(grasped=(pressing(state, geo)[:, None] & on_part).any(axis=0),
-                     touched=fingers_closed(state) & tips, centers=centers,
-                     on_table=whole[:, 2].min() <= TABLE_HEIGHT + ON_TABLE_DISTANCE)
+                     touched=fingers_closed(state) & tips, centers=centers, on_table=on_table(state, geo))

@@ -188,10 +188,19 @@ def _resampled(keep: jnp.ndarray, masks: jnp.ndarray, state, geo) -> jnp.ndarray
                         lambda: jnp.where(keep[:, None, None], masks, _batch_masks(state, geo)))
 
 
+def _rows_at(rows: GoalRows, index: jnp.ndarray) -> GoalRows:
+    """(B, G) rows: each environment's rows (B, S, G) at its `index` (B,)."""
+    return jax.vmap(lambda r, i: jax.tree_util.tree_map(lambda x: x[i], r))(rows, index)
+
+
+def _facts(state, geo, masks, rows: GoalRows) -> predicates.PartFacts:
+    """The batch's part facts for evaluating `rows` (B, G): part centres only when one of them is FACING."""
+    facing = (rows.kind == GOAL_KINDS.index("FACING")).any()
+    return predicates.batch_part_facts(state, geo, masks, centers=facing)
+
+
 def _skill_update(task: TaskState, state, geo):
-    def one(task, state, facts):
-        index = jnp.minimum(task.skill_index, MAX_SKILLS - 1)
-        rows = jax.tree_util.tree_map(lambda x: x[index], task.skills)
+    def one(task, state, rows, facts):
         met = evaluate(state, geo, task.masks, rows, task.skill_p0, facts)
         finished = met.all() & ~task.success
         skill_index = task.skill_index + finished
@@ -200,14 +209,13 @@ def _skill_update(task: TaskState, state, geo):
         return finished, task.replace(skill_index=skill_index, skill_p0=p0, goals_met=met, success=success,
                                       completion=skill_index / task.num_skills)
 
-    facts = predicates.batch_part_facts(state, geo, task.masks)
-    finished, task = jax.vmap(one)(task, state, facts)
+    rows = _rows_at(task.skills, jnp.minimum(task.skill_index, MAX_SKILLS - 1))
+    finished, task = jax.vmap(one)(task, state, rows, _facts(state, geo, task.masks, rows))
     return task.replace(masks=_resampled(~finished, task.masks, state, geo))  # resampled when the next skill starts
 
 
 def _task_update(task: TaskState, state, geo):
-    def one(task, state, masks, facts):
-        rows = jax.tree_util.tree_map(lambda x: x[task.phase], task.phases)
+    def one(task, state, masks, rows, facts):
         met = evaluate(state, geo, masks, rows, task.task_p0, facts)
         real = rows.kind > 0
         holds = met.all() & ~task.success
@@ -222,7 +230,8 @@ def _task_update(task: TaskState, state, geo):
                             completion=jnp.where(success, 1.0, completion))
 
     masks = _resampled(task.freeze_spatial, task.masks, state, geo)
-    return jax.vmap(one)(task, state, masks, predicates.batch_part_facts(state, geo, masks))
+    rows = _rows_at(task.phases, task.phase)
+    return jax.vmap(one)(task, state, masks, rows, _facts(state, geo, masks, rows))
 
 
 def update(task: TaskState, state, geo: PartGeometry, skill_mode: bool) -> TaskState:
