@@ -75,6 +75,8 @@ def main(argv: list[str] | None = None) -> int:
     bench.add_argument("--impls", nargs="+", choices=["jax", "warp"], default=["jax", "warp"],
                        help="mjx suite: MJX implementations to measure (default both; warp needs warp-lang and a "
                             "CUDA GPU). A run of one writes its own section of the output")
+    bench.add_argument("--no-variants", action="store_true",
+                       help="mjx suite: skip the collision- and solver-budget variants (each compiles for a minute)")
     bench.add_argument("--episodes", type=int, default=64, help="demos suite: train episodes per run (default 64)")
     bench.add_argument("--backend", choices=["mujoco", "mjx"], default="mujoco",
                        help="demos suite: physics backend (default mujoco; mjx on a GPU)")
@@ -291,7 +293,7 @@ def _bench_mjx(args, info: dict, command: str) -> tuple[str, str, str, list[dict
 
     objects = args.object or [paths.assets_root() / "objects/mug/mug_000/object.xml"]
     results = mjx_env.run(objects, tuple(args.batch_sizes or mjx_env.DEFAULT_BATCH_SIZES), args.steps, args.repeats,
-                          on_row=write, impls=impls)
+                          on_row=write, impls=impls, variants=() if args.no_variants else mjx_env.VARIANTS)
     table = mjx_env.markdown(results)
     print(table)
     return title, heading, table, mjx_env.data_rows(results)

@@ -289,9 +289,9 @@ def measure_warp(object_xml: Path, batch_sizes: tuple[int, ...], steps: int, rep
 
 def run(objects: list[Path], batch_sizes: tuple[int, ...] = DEFAULT_BATCH_SIZES, steps: int = 20,
         repeats: int = 5, on_row: Callable[[MjxBenchResults], None] | None = None,
-        impls: tuple[str, ...] = IMPLS) -> MjxBenchResults:
+        impls: tuple[str, ...] = IMPLS, variants: tuple[Variant, ...] = VARIANTS) -> MjxBenchResults:
     """Measure every object at every batch size on MJX's JAX implementation with, on the object with the most
-    hulls, the variants at TARGET_BATCH (or the largest batch size when it is not among them); then every object at
+    hulls, `variants` at TARGET_BATCH (or the largest batch size when it is not among them); then every object at
     every batch size on Warp. `impls` picks the implementations; `on_row` sees the results after each row."""
     config = EnvConfig(backend="mjx")
     results = MjxBenchResults(device_name(), steps, repeats, config.scene.substeps, config.ik.iterations,
@@ -314,7 +314,7 @@ def run(objects: list[Path], batch_sizes: tuple[int, ...] = DEFAULT_BATCH_SIZES,
                     measure(env, cycled(states, batch), steps, repeats), reset_s))
         if xml != largest:
             continue
-        for variant in VARIANTS:
+        for variant in variants:
             model = copy.deepcopy(env.scene.model)
             variant.edit(env.scene, model)
             moved = with_model(env, states, model)
