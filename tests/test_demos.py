@@ -108,8 +108,13 @@ def test_same_arguments_give_the_same_demos(metadata, run_dir, tmp_path):
 
 
 def test_other_settings_are_refused_for_an_existing_directory(metadata, run_dir, capsys):
+    before = sorted(p.relative_to(run_dir) for p in run_dir.rglob("*"))
     assert demos(metadata, run_dir, 2, "--seed", "1") == 2
     assert "env_args" in capsys.readouterr().err
+    # refused before anything is written, also the episode selection a run without --metadata keeps
+    assert main(["demos", "--episodes", "2", "--seed", "1", "--out", str(run_dir), "--quiet"]) == 2
+    assert "env_args" in capsys.readouterr().err
+    assert sorted(p.relative_to(run_dir) for p in run_dir.rglob("*")) == before
 
 
 def test_replay_reproduces_stored_demos(run_dir, capsys):

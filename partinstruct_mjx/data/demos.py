@@ -104,6 +104,20 @@ class Demo:
         return np.searchsorted(self.skill_index, np.arange(len(self.episode.chain))).tolist()
 
 
+def read_ledger(out_dir: str | os.PathLike) -> dict | None:
+    """A run directory's ledger, or None before its first run."""
+    path = Path(out_dir) / _LEDGER
+    return json.loads(path.read_text()) if path.exists() else None
+
+
+def check_env_args(out_dir: str | os.PathLike, env_args: dict) -> None:
+    """Refuse (DataError) a run directory that was started with other env_args; a new directory passes."""
+    ledger = read_ledger(out_dir)
+    if ledger is not None and ledger["env_args"] != env_args:
+        raise DataError(f"{out_dir} was started with env_args {ledger['env_args']}, not {env_args}; use a new "
+                        f"directory for a different environment")
+
+
 class DemoWriter:
     """Writes the demos and failures of one run directory; resumable (see the module docstring for the protocol).
 
@@ -119,12 +133,10 @@ class DemoWriter:
             raise DataError(f"env_args must be a JSON-able dict: {err}") from None
         self.out_dir.mkdir(parents=True, exist_ok=True)
         with self._locked():
+            check_env_args(self.out_dir, self.env_args)
             ledger = self._ledger()
             if ledger is None:
                 self._write_ledger({"env_args": self.env_args, "obs_layout": None, "episodes": {}})
-            elif ledger["env_args"] != self.env_args:
-                raise DataError(f"{self.out_dir} was started with env_args {ledger['env_args']}, not "
-                                f"{self.env_args}; use a new directory for a different environment")
             else:
                 self._remove_uncommitted(ledger)
 
@@ -231,8 +243,7 @@ class DemoWriter:
             yield
 
     def _ledger(self) -> dict | None:
-        path = self.out_dir / _LEDGER
-        return json.loads(path.read_text()) if path.exists() else None
+        return read_ledger(self.out_dir)
 
     def _write_ledger(self, ledger: dict) -> None:
         with atomic_write(self.out_dir / _LEDGER) as file:

@@ -107,8 +107,10 @@ def run_demos(args: argparse.Namespace) -> int:
         raise DataError("--out DIR is required (the run directory to write or resume)")
     if args.batch_size < 1:
         raise DataError(f"--batch-size must be >= 1, got {args.batch_size}")
-    from partinstruct_mjx.data.synthesis import remembered_selection, select_episodes, synthesize
+    from partinstruct_mjx.data.demos import check_env_args
+    from partinstruct_mjx.data.synthesis import env_args, remembered_selection, select_episodes, synthesize
 
+    check_env_args(args.out, env_args(args.backend, args.sampler, args.seed))  # before the selection is stored
     if args.metadata is not None:
         episodes = select_episodes(args.split, args.episodes, args.seed, args.types, args.categories, args.metadata,
                                    args.assets)
