@@ -280,11 +280,14 @@ def test_part_facts_match_the_single_predicates_on_an_oracle_rollout(obj_id, typ
     assert 0 < idle.sum() < len(idle)
     idle_data = jax.tree_util.tree_map(lambda x: x[idle], data)
     skipped = jax.jit(predicates.batch_part_facts)(idle_data, geo, masks[idle])
-    without_centers = jax.jit(predicates.batch_part_facts)(data, geo, masks, jax.numpy.asarray(False))
-    np.testing.assert_array_equal(without_centers.centers, 0.0)
-    for facts, rows in ((single, slice(None)), (batched, slice(None)), (skipped, idle),
-                        (without_centers.replace(centers=batched.centers), slice(None))):
+    for facts, rows in ((single, slice(None)), (batched, slice(None)), (skipped, idle)):
         np.testing.assert_array_equal(facts.grasped, grasped[rows])
         np.testing.assert_array_equal(facts.touched, touched[rows])
         np.testing.assert_allclose(facts.centers, np.asarray(reference[2])[rows], atol=1e-6)
         np.testing.assert_array_equal(facts.on_table, np.asarray(reference[3])[rows])
+    off = jax.numpy.asarray(False)  # no goal row reads a search: its facts are false or zero, labels still hold
+    unread = jax.jit(predicates.batch_part_facts)(data, geo, masks, regions=off, tips=off, centers=off, table=off)
+    spatial = (np.arange(len(grasped[0])) >= geo.num_semantic) & (np.arange(len(grasped[0])) < geo.whole)
+    np.testing.assert_array_equal(unread.grasped, grasped & ~spatial)
+    assert not np.asarray(unread.touched).any() and not np.asarray(unread.on_table).any()
+    np.testing.assert_array_equal(unread.centers, 0.0)

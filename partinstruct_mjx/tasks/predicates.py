@@ -153,26 +153,31 @@ class PartFacts:
 def part_facts(state, geo: PartGeometry, masks: jnp.ndarray) -> PartFacts:
     """`PartFacts` of one environment; each distinct cloud is transformed and searched once."""
     return _facts(state, geo, contact_regions(state, geo, masks), tip_near(state, geo, masks),
-                  part_centers(state, geo, masks))
+                  part_centers(state, geo, masks), on_table(state, geo))
 
 
-def batch_part_facts(state, geo: PartGeometry, masks: jnp.ndarray, centers=True) -> PartFacts:
-    """`part_facts` of a batch (leading dimension B): the contact search runs only when some finger of the batch
-    presses the object and the fingertip search only when some gripper is closed, since GRASPING and TOUCHING are
-    false otherwise whatever the searches find; the part centres only when `centers` (a traced bool: some goal row
-    of the batch is FACING), zeros otherwise."""
+def batch_part_facts(state, geo: PartGeometry, masks: jnp.ndarray, regions=True, tips=True, centers=True,
+                     table=True) -> PartFacts:
+    """`part_facts` of a batch (leading dimension B), each search run only when its facts can matter (skipped ones
+    are false or zero): the contact search when `regions` (a traced bool: some goal row is GRASPING a spatial part)
+    and some finger of the batch presses the object, the fingertip search when `tips` (some row is TOUCHING or
+    RELEASED) and some gripper is closed (GRASPING and TOUCHING are false otherwise whatever the searches find), the
+    part centres when `centers` (some row is FACING), ON when `table` (some row is ON)."""
     batch = masks.shape[0]
     spatial = masks.shape[1]
     rows = geo.points.shape[0]
     pressed = jax.vmap(pressing, in_axes=(0, None))(state, geo).any()
-    regions = jax.lax.cond(pressed, lambda: jax.vmap(contact_regions, in_axes=(0, None, 0))(state, geo, masks),
-                           lambda: jnp.zeros((batch, 2, spatial), bool))
+    near_contacts = jax.lax.cond(regions & pressed,
+                                 lambda: jax.vmap(contact_regions, in_axes=(0, None, 0))(state, geo, masks),
+                                 lambda: jnp.zeros((batch, 2, spatial), bool))
     closed = jax.vmap(fingers_closed)(state).any()
-    tips = jax.lax.cond(closed, lambda: jax.vmap(tip_near, in_axes=(0, None, 0))(state, geo, masks),
-                        lambda: jnp.zeros((batch, rows), bool))
+    near_tip = jax.lax.cond(tips & closed, lambda: jax.vmap(tip_near, in_axes=(0, None, 0))(state, geo, masks),
+                            lambda: jnp.zeros((batch, rows), bool))
     means = jax.lax.cond(centers, lambda: jax.vmap(part_centers, in_axes=(0, None, 0))(state, geo, masks),
                          lambda: jnp.zeros((batch, rows, 3), geo.points.dtype))
-    return jax.vmap(_facts, in_axes=(0, None, 0, 0, 0))(state, geo, regions, tips, means)
+    on = jax.lax.cond(table, lambda: jax.vmap(on_table, in_axes=(0, None))(state, geo),
+                      lambda: jnp.zeros(batch, bool))
+    return jax.vmap(_facts, in_axes=(0, None, 0, 0, 0, 0))(state, geo, near_contacts, near_tip, means, on)
 
 
 def _on_object(state, geo: PartGeometry) -> tuple[jnp.ndarray, jnp.ndarray]:
@@ -230,10 +235,10 @@ def part_centers(state, geo: PartGeometry, masks: jnp.ndarray) -> jnp.ndarray:
                             (rows @ whole) / jnp.maximum(rows.sum(axis=-1), 1)[:, None]])
 
 
-def _facts(state, geo: PartGeometry, regions, tips, centers) -> PartFacts:
+def _facts(state, geo: PartGeometry, regions, tips, centers, on) -> PartFacts:
     n = geo.num_semantic
     on_object, label = _on_object(state, geo)
     labelled = (on_object[..., None] & (label[..., None] == jnp.arange(n))).any(axis=1)  # (2, n)
     on_part = jnp.concatenate([labelled, regions, on_object.any(axis=-1)[:, None]], axis=1)  # (2, K)
     return PartFacts(grasped=(pressing(state, geo)[:, None] & on_part).any(axis=0),
-                     touched=fingers_closed(state) & tips, centers=centers, on_table=on_table(state, geo))
+                     touched=fingers_closed(state) & tips, centers=centers, on_table=on)

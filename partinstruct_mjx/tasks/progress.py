@@ -193,10 +193,15 @@ def _rows_at(rows: GoalRows, index: jnp.ndarray) -> GoalRows:
     return jax.vmap(lambda r, i: jax.tree_util.tree_map(lambda x: x[i], r))(rows, index)
 
 
-def _facts(state, geo, masks, rows: GoalRows) -> predicates.PartFacts:
-    """The batch's part facts for evaluating `rows` (B, G): part centres only when one of them is FACING."""
-    facing = (rows.kind == GOAL_KINDS.index("FACING")).any()
-    return predicates.batch_part_facts(state, geo, masks, centers=facing)
+def _facts(state, geo: PartGeometry, masks, rows: GoalRows) -> predicates.PartFacts:
+    """The batch's part facts for evaluating `rows` (B, G): each search only when one of the rows reads it."""
+    def kind(name):
+        return rows.kind == GOAL_KINDS.index(name)
+
+    spatial = (rows.part >= geo.num_semantic) & (rows.part < geo.whole)
+    return predicates.batch_part_facts(state, geo, masks, regions=(kind("GRASPING") & spatial).any(),
+                                       tips=(kind("TOUCHING") | kind("RELEASED")).any(), centers=kind("FACING").any(),
+                                       table=kind("ON").any())
 
 
 def _skill_update(task: TaskState, state, geo):
