@@ -54,17 +54,19 @@ def main(argv: list[str] | None = None) -> int:
                     "clouds/s on the current device (mug_000) and the OpenGL depth path for comparison. pybullet: our CPU env "
                     "vs PyBullet doing the same work the original's way, in one run. demos: successful oracle "
                     "demos/hour, episodes/s, env steps/s and the time split of `partinstruct demos` on --episodes "
-                    "train episodes (one cold run for the compile overhead, then --repeats warm runs; default 1). "
+                    "train episodes (one cold run for the compile overhead, then --repeats warm runs; default 1). eval: "
+                    "episodes/minute of `partinstruct eval --policy oracle` over the five test splits with --episodes "
+                    "per split (cold and warm runs as demos), and the projected time of 1,800 episodes. "
                     "mjx: MJX env steps/s of the jitted, vmapped BraxPartInstructEnv step (IK, physics, predicates) "
                     "on the current JAX device per --object and batch size, compile time separate, collision-budget "
                     "variants of the object with the most hulls, and impl='warp' when installed (needs brax).")
     bench.add_argument("suite", nargs="?", default="cpu_backend",
-                       choices=["cpu_backend", "convert", "ik", "pointcloud", "pybullet", "demos", "mjx"],
+                       choices=["cpu_backend", "convert", "ik", "pointcloud", "pybullet", "demos", "eval", "mjx"],
                        help="what to measure (default cpu_backend)")
     bench.add_argument("--sources", type=Path, nargs="+", default=[Path("../shared/partnet_samples")],
                        help="convert suite: PartNet-Mobility folders (default ../shared/partnet_samples)")
     bench.add_argument("--batch-sizes", type=int, nargs="+", default=None,
-                       help="default: 1 2 8 32 (cpu_backend), 1 64 1024 16384 (ik), 1 16 256 (pointcloud), 16 (demos), "
+                       help="default: 1 2 8 32 (cpu_backend), 1 64 1024 16384 (ik), 1 16 256 (pointcloud), 16 (demos, eval), "
                             "256 1024 4096 16384 (mjx)")
     bench.add_argument("--object", type=Path, action="append", default=None,
                        help="mjx suite: object MJCF, repeatable (default: the built-in mug_000)")
@@ -77,9 +79,11 @@ def main(argv: list[str] | None = None) -> int:
                             "CUDA GPU). A run of one writes its own section of the output")
     bench.add_argument("--no-variants", action="store_true",
                        help="mjx suite: skip the collision- and solver-budget variants (each compiles for a minute)")
-    bench.add_argument("--episodes", type=int, default=64, help="demos suite: train episodes per run (default 64)")
+    bench.add_argument("--episodes", type=int, default=None,
+                       help="demos suite: train episodes per run (default 64); eval suite: episodes per test split "
+                            "(default 8)")
     bench.add_argument("--backend", choices=["mujoco", "mjx"], default="mujoco",
-                       help="demos suite: physics backend (default mujoco; mjx on a GPU)")
+                       help="demos and eval suites: physics backend (default mujoco; mjx on a GPU)")
     bench.add_argument("--threads", type=int, default=None, help="worker threads/processes (default: all cores)")
     bench.add_argument("--output", type=Path, default=DEFAULT_BENCH_OUTPUT,
                        help=f"markdown file to update (default {DEFAULT_BENCH_OUTPUT}); '-' prints only")
@@ -189,7 +193,7 @@ def _bench(args) -> int:
 
     command = " ".join(["partinstruct", "bench", *sys.argv[2:]]) if sys.argv[1:2] == ["bench"] else "partinstruct bench"
     if args.repeats is None:
-        args.repeats = 1 if args.suite == "demos" else 5
+        args.repeats = 1 if args.suite in ("demos", "eval") else 5
     if args.steps is None:
         args.steps = 20 if args.suite == "mjx" else 200
     info, data = provenance(), None
@@ -236,14 +240,15 @@ def _bench(args) -> int:
                          batch, r.env_steps_per_s, r.spread, engine="partinstruct-mjx", threads=threads,
                          per_core_ratio=list(r.ratio))
                  for (batch, threads), r in ours.items()]
-    elif args.suite == "demos":
+    elif args.suite in ("demos", "eval"):
         import jax
 
         gpu = jax.default_backend() != "cpu"
         device = jax.devices()[0].device_kind
-        title = f"demos_{device.lower().replace(' ', '_')}" if gpu else "demos"
-        heading = f"Demonstration synthesis ({device})" if gpu else "Demonstration synthesis"
-        table = _bench_demos(args)
+        title = f"{args.suite}_{device.lower().replace(' ', '_')}" if gpu else args.suite
+        name = "Demonstration synthesis" if args.suite == "demos" else "Evaluation"
+        heading = f"{name} ({device})" if gpu else name
+        table = _bench_demos(args) if args.suite == "demos" else _bench_eval(args)
     elif args.suite == "mjx":
         title, heading, table, data = _bench_mjx(args, info, command)
     else:
@@ -262,7 +267,7 @@ def _bench_demos(args) -> str:
     from partinstruct_mjx.jax_setup import enable_compilation_cache
 
     cache = enable_compilation_cache()
-    episodes = demos.bench_episodes(args.episodes)
+    episodes = demos.bench_episodes(args.episodes or 64)
     results = []
     for batch in args.batch_sizes or [16]:
         result = demos.measure(episodes, batch, args.repeats, args.threads, backend=args.backend)
@@ -272,6 +277,26 @@ def _bench_demos(args) -> str:
               f"compile {result.compile_s:.1f} s")
     device = f"{jax.default_backend()} ({jax.devices()[0].device_kind})"
     table = demos.markdown(results, episodes, device, f"on ({cache})")
+    print(table)
+    return table
+
+
+def _bench_eval(args) -> str:
+    import jax
+
+    from partinstruct_mjx.bench import evaluation
+    from partinstruct_mjx.jax_setup import enable_compilation_cache
+
+    cache = enable_compilation_cache()
+    results = []
+    for batch in args.batch_sizes or [16]:
+        config = evaluation.bench_config(args.episodes or 8, batch, args.backend, args.threads)
+        result = evaluation.measure(config, args.repeats)
+        results.append(result)
+        print(f"batch {batch:>3}: {result.episodes_per_min:,.1f} episodes/min, oracle success "
+              f"{result.cold.successes}/{result.cold.episodes}, compile {result.compile_s:.1f} s, "
+              f"{evaluation.FULL_EVALUATION:,} episodes in {result.full_evaluation_min:,.1f} min")
+    table = evaluation.markdown(results, f"{jax.default_backend()} ({jax.devices()[0].device_kind})", f"on ({cache})")
     print(table)
     return table
 

@@ -239,3 +239,18 @@ def test_mjx_backend_runs_the_same_evaluation(metadata, tmp_path):
     results = json.loads((out / "results.json").read_text())
     assert results["config"]["backend"] == "mjx" and len(results["episodes"]) == 2
     assert all(r["steps"] <= 10 for r in results["episodes"])
+
+
+def test_eval_bench_rates_and_projection():
+    from partinstruct_mjx.bench import evaluation
+
+    config = evaluation.bench_config(8, 16)
+    assert config.splits == ("test1", "test2", "test3", "test4", "test5") and config.policy == "oracle"
+    result = evaluation.EvalBenchResult(config, evaluation.EvalRun(40, 30, 300.0),
+                                        [evaluation.EvalRun(40, 30, 60.0), evaluation.EvalRun(40, 30, 40.0)])
+    assert result.episodes_per_min == pytest.approx(50.0)  # median of 40 and 60 episodes/min
+    assert result.episodes_per_min_range == (40.0, 60.0)
+    assert result.compile_s == pytest.approx(250.0)
+    assert result.full_evaluation_min == pytest.approx(1800 / 50 + 250 / 60)
+    text = evaluation.markdown([result], "cpu (cpu)", "off")
+    assert "| 16 | 40 | 30 (75%) | 50.0 | 40.0 - 60.0 | 50.0 | 250.0 | 8.0 | 40.2 |" in text

@@ -1,0 +1,106 @@
+"""Evaluation throughput: episodes/minute of `partinstruct eval` (the oracle policy) over the five test splits.
+
+One cold run (JAX's in-process caches cleared, so it pays for compiling or loading from the persistent cache) and
+`repeats` warm runs of the same evaluation into temporary directories; each run's wall time covers what
+`partinstruct eval` does (episode generation, environments, rollouts, results files). Rates are medians of the warm
+runs; the compile overhead is the cold run's wall time minus the warm median.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from partinstruct_mjx.eval.config import TEST_SPLITS, EvalConfig
+
+FULL_EVALUATION = 1800
+"""Episodes of the full evaluation the DESIGN.md target times (< 10 minutes on one H100)."""
+
+
+@dataclass(frozen=True)
+class EvalRun:
+    episodes: int
+    successes: int
+    wall_s: float
+
+
+@dataclass(frozen=True)
+class EvalBenchResult:
+    config: EvalConfig
+    cold: EvalRun
+    warm: list[EvalRun]
+
+    @property
+    def episodes_per_min(self) -> float:
+        return float(np.median([r.episodes / r.wall_s * 60 for r in self.warm]))
+
+    @property
+    def episodes_per_min_range(self) -> tuple[float, float]:
+        rates = [r.episodes / r.wall_s * 60 for r in self.warm]
+        return min(rates), max(rates)
+
+    @property
+    def compile_s(self) -> float:
+        return self.cold.wall_s - float(np.median([r.wall_s for r in self.warm]))
+
+    @property
+    def full_evaluation_min(self) -> float:
+        """Minutes FULL_EVALUATION episodes take at the warm rate, plus the compile overhead once."""
+        return FULL_EVALUATION / self.episodes_per_min + self.compile_s / 60
+
+
+def measure(config: EvalConfig, repeats: int) -> EvalBenchResult:
+    """One cold and `repeats` warm evaluations of the oracle with `config`."""
+    import jax
+
+    from partinstruct_mjx.eval.runner import evaluate
+
+    runs = []
+    with tempfile.TemporaryDirectory(prefix="partinstruct-bench-eval-") as tmp:
+        jax.clear_caches()
+        for index in range(1 + repeats):
+            start = time.perf_counter()
+            results = evaluate(config, Path(tmp) / f"run{index}", progress=False)
+            wall = time.perf_counter() - start
+            outcomes = results["episodes"]
+            runs.append(EvalRun(len(outcomes), sum(bool(e["success"]) for e in outcomes), wall))
+    return EvalBenchResult(config, runs[0], runs[1:])
+
+
+def bench_config(episodes_per_split: int, batch_size: int, backend: str = "mujoco",
+                 threads: int | None = None) -> EvalConfig:
+    """The oracle on every test split, skill mode, `episodes_per_split` generated episodes each (seed 0)."""
+    return dataclasses.replace(EvalConfig(), splits=TEST_SPLITS, episodes_per_split=episodes_per_split,
+                               batch_size=batch_size, backend=backend, num_threads=threads)
+
+
+def markdown(results: list[EvalBenchResult], device: str, cache: str) -> str:
+    first = results[0].config
+    rows = []
+    for r in results:
+        low, high = r.episodes_per_min_range
+        successes = r.cold.successes
+        rows.append(f"| {r.config.batch_size} | {r.cold.episodes} | {successes} ({successes / r.cold.episodes:.0%}) | "
+                    f"{r.episodes_per_min:,.1f} | {low:,.1f} - {high:,.1f} | "
+                    f"{np.median([w.wall_s for w in r.warm]):.1f} | {r.compile_s:.1f} | "
+                    f"{r.cold.episodes / r.cold.wall_s * 60:,.1f} | {r.full_evaluation_min:,.1f} |")
+    threads = first.num_threads or os.cpu_count() or 1
+    return (
+        f"`partinstruct eval --policy oracle` ({first.mode} mode) on {first.episodes_per_split} generated episodes "
+        f"of each of {', '.join(first.splits)} (seed {first.seed}), `{first.backend}` backend"
+        f"{f' with {threads} threads' if first.backend == 'mujoco' else ''}, JAX on {device}; JAX persistent "
+        f"compilation cache: {cache}. Each run's wall time is the whole evaluation (episode generation, one "
+        f"environment per object and batch size, rollouts to success or the step limit, results files). "
+        f"Rates are medians of {len(results[0].warm)} warm run(s); 'compile' is the cold run's wall time (in-process "
+        f"JAX caches cleared) minus the warm median. The last column projects {FULL_EVALUATION:,} episodes (the "
+        f"DESIGN.md target: < 10 minutes on one H100) at the warm rate plus the compile once; a trained policy adds "
+        f"its own inference to every step.\n\n"
+        "| batch | episodes | oracle success | episodes/min | range | warm wall s | compile s | cold episodes/min | "
+        f"{FULL_EVALUATION:,} episodes, min |\n"
+        "|---|---|---|---|---|---|---|---|---|\n" + "\n".join(rows) + "\n")
