@@ -31,12 +31,14 @@ def test_builds_at_home_with_the_object_on_the_table(scene):
 
 def test_tcp_follows_the_target(scene):
     target = HOME_TCP_POS + [0.0, -0.03, -0.04]
+    scene.reset()
     for _ in range(60):  # 3 s; kp = 0.01 is a 0.42 s lag
-        predicates = scene.step_like_the_original(target)
+        assert not scene.step_like_the_original(target)  # nothing grasped: the grasp skill stays unmet
     np.testing.assert_allclose(scene.tcp_pose()[0], target, atol=2e-3)
-    assert predicates["on"]
+    assert scene.predicates()["on"] and scene.skill == 0
 
 
 def test_workload_grasps_the_handle_and_returns_a_positive_rate(scene):
     assert pybullet_rate(scene, 30) > 0  # the approach, then the descent and 20 closed steps
     assert scene.predicates()["grasping"]
+    assert scene.skill == 1  # the handle grasp met the grasp skill's check; the move's check runs now

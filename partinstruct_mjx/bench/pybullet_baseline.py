@@ -8,12 +8,13 @@ placed as our env places it (lowest point 5 mm above the table, then settled).
 
 `step_like_the_original(tcp_pos, tcp_quat_xyzw, finger)` is one env step: `calculateInverseKinematics` on link 11
 (20 iterations, seeded from the current state, no joint limits: spec 1.6 / 12 #2), position motors (arm force 2400,
-gain 0.01; fingers force 5000, gain 0.01), 12 x `stepSimulation` at 240 Hz, then the predicates on 10,000-point NumPy
-clouds: the object and target-part clouds transformed by the base pose, ON (getClosestPoints, 1 mm), GRIPPER_OPEN,
-MIN_DISTANCE, GRASPING (contact forces > 20 N and a brute-force NumPy nearest-point search of the finger contact
-positions against the part cloud, 3 mm), FACING (cloud mean vs base position) and TOUCHING's distance part (fingertip
-to part cloud, 1 cm). TOUCHING's extra `world.step()` (12 more physics steps per evaluation in the original, spec
-12 #3) is NOT done here, so the figure is generous to PyBullet.
+gain 0.01; fingers force 5000, gain 0.01), 12 x `stepSimulation` at 240 Hz, then the original's per-step success
+check of the current skill of the bench's type-3 episode (spec 5.2) on 10,000-point NumPy clouds: the object and
+target-part clouds transformed by the base pose, then the skill's predicates in order, stopping at the first that
+fails: GRASPING (finger contact forces > 20 N and a brute-force NumPy nearest-point search of the contact positions
+against the part cloud, 3 mm) for the grasp, GRASPING(any) and AT_POSITION for the move, as our env evaluates the
+current skill's goals. `predicates` computes every spec-4 predicate (for the tests); TOUCHING's extra
+`world.step()` (12 more physics steps per evaluation in the original, spec 12 #3) does not arise in this chain.
 
 Both engines run the same commanded workload (`workload`): from home the TCP moves above the mug's handle (untimed),
 then repeats a 50-step grasp cycle, so finger contacts with force, a closed gripper and the searches that need them
@@ -52,6 +53,8 @@ GRASP_TCP_POS = np.array([0.0, 0.012, 0.146])
 GRASP_TCP_QUAT = top_down_quat(0.0)
 """(w, x, y, z): approach axis down, fingers closing along x, across the handle."""
 HOVER = 0.08
+MOVE = np.array([0.0, 0.12, 0.0])
+"""The bench episode's move: 0.12 m (the original's UNIT) to the left (+y)."""
 """Height of the cycle's hover pose above the grasp pose (the open fingers clear the handle)."""
 CYCLE = 50
 APPROACH_STEPS, APPROACH_HOLD = 60, 40
@@ -118,6 +121,7 @@ class PyBulletScene:
         self._reset_robot()
         p.resetBasePositionAndOrientation(self.object, *self._settled, physicsClientId=cid)
         p.resetBaseVelocity(self.object, [0, 0, 0], [0, 0, 0], physicsClientId=cid)
+        self.skill, self.skill_start = 0, self._posed_clouds()[2]
 
     def _reset_robot(self) -> None:
         """Hard-set the home joints (arm + open fingers) with zero velocity and home motor targets."""
@@ -227,22 +231,18 @@ class PyBulletScene:
         rot = np.array(p.getMatrixFromQuaternion(quat)).reshape(3, 3)
         return pos - TCP_OFFSET * rot[:, 2], quat
 
-    def predicates(self, direction=(0.0, 1.0, 0.0), goal_pos=(0.0, 0.0, 0.1)) -> dict[str, bool]:
-        """The spec-4 predicates the original's way, on 10,000-point NumPy clouds (TOUCHING without its step)."""
+    def _posed_clouds(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The object and target-part clouds moved to the base pose (the original's update_part_pcds, every step)
+        and the object frame's origin (the original's "base position")."""
         p, cid = self.p, self.client
         pos, quat = p.getBasePositionAndOrientation(self.object, physicsClientId=cid)
         pos = np.asarray(pos)
         rot = np.array(p.getMatrixFromQuaternion(quat)).reshape(3, 3)
-        object_cloud = self.object_cloud @ rot.T + pos  # update_part_pcds: every cloud follows the base pose
-        part_cloud = self.part_cloud @ rot.T + pos
-        origin = pos + rot @ self._root_in_com  # the object frame's origin (the original's "base position")
-        tcp_pos, tcp_quat = self.tcp_pose()
-        tcp_rot = np.array(p.getMatrixFromQuaternion(tcp_quat)).reshape(3, 3)
+        return self.object_cloud @ rot.T + pos, self.part_cloud @ rot.T + pos, pos + rot @ self._root_in_com
 
-        on = len(p.getClosestPoints(self.table, self.object, 0.001, physicsClientId=cid)) > 0
-        finger_q = p.getJointState(self.robot, LEFT_FINGER, physicsClientId=cid)[0]
-        gripper_open = abs(finger_q - 0.04) < 0.005
-        min_distance = float(np.linalg.norm(origin - tcp_pos)) > 0.05
+    def _grasping(self, cloud: np.ndarray) -> bool:
+        """GRASPING: a finger contact over 20 N within 3 mm of `cloud` (brute-force NumPy nearest point)."""
+        p, cid = self.p, self.client
         grasping = False
         for link in (LEFT_FINGER, RIGHT_FINGER):
             contacts = p.getContactPoints(bodyA=self.robot, linkIndexA=link, physicsClientId=cid)
@@ -250,23 +250,48 @@ class PyBulletScene:
                 continue
             strong = any(c[9] > 20.0 for c in contacts)
             points = np.array([c[5] for c in contacts])  # contact positions on the finger
-            dist = np.sqrt(((points[:, None, :] - part_cloud[None]) ** 2).sum(-1)).min()
+            dist = np.sqrt(((points[:, None, :] - cloud[None]) ** 2).sum(-1)).min()
             grasping |= bool(strong and dist < 0.003)
+        return grasping
+
+    def predicates(self, direction=(0.0, 1.0, 0.0), goal_pos=(0.0, 0.0, 0.1)) -> dict[str, bool]:
+        """All spec-4 predicates the original's way, on 10,000-point NumPy clouds (TOUCHING without its step)."""
+        p, cid = self.p, self.client
+        object_cloud, part_cloud, origin = self._posed_clouds()
+        tcp_pos, tcp_quat = self.tcp_pose()
+        tcp_rot = np.array(p.getMatrixFromQuaternion(tcp_quat)).reshape(3, 3)
+        on = len(p.getClosestPoints(self.table, self.object, 0.001, physicsClientId=cid)) > 0
+        finger_q = p.getJointState(self.robot, LEFT_FINGER, physicsClientId=cid)[0]
         v = part_cloud.mean(axis=0) - origin
         d = np.asarray(direction, float)
-        facing = float(np.arccos(np.clip(v @ d / (np.linalg.norm(v) * np.linalg.norm(d) + 1e-12), -1, 1))) < 0.5
         tip = tcp_pos + FINGERTIP_OFFSET * tcp_rot[:, 2]
-        touching_dist = float(np.sqrt(((part_cloud - tip) ** 2).sum(-1)).min()) < 0.01
-        at_position = float(np.linalg.norm(origin - np.asarray(goal_pos))) < 0.02
-        whole_mean = object_cloud.mean(axis=0)  # the whole-object cloud is transformed and used as the original does
-        return {"on": on, "gripper_open": gripper_open, "min_distance": min_distance, "grasping": grasping,
-                "facing": facing, "touching_distance": touching_dist, "at_position": at_position,
-                "object_cloud_finite": bool(np.isfinite(whole_mean).all())}
+        return {"on": on, "gripper_open": abs(finger_q - 0.04) < 0.005,
+                "min_distance": float(np.linalg.norm(origin - tcp_pos)) > 0.05, "grasping": self._grasping(part_cloud),
+                "facing": float(np.arccos(np.clip(v @ d / (np.linalg.norm(v) * np.linalg.norm(d) + 1e-12), -1, 1)))
+                < 0.5,
+                "touching_distance": float(np.sqrt(((part_cloud - tip) ** 2).sum(-1)).min()) < 0.01,
+                "at_position": float(np.linalg.norm(origin - np.asarray(goal_pos))) < 0.02,
+                "object_cloud_finite": bool(np.isfinite(object_cloud.mean(axis=0)).all())}
 
-    def step_like_the_original(self, tcp_pos, tcp_quat_xyzw=HOME_TCP_QUAT_XYZW, finger=panda.FINGER_OPEN):
-        """One env step: IK + motors + 12 physics steps + the predicates; returns the predicates."""
+    def skill_check(self) -> bool:
+        """The current skill's success check of the bench's type-3 episode, as the original's
+        `_check_if_done_skill` runs it after every step (spec 5.2): the clouds follow the base pose, then the
+        skill's predicates in order, stopping at the first that fails. grasp(handle): GRASPING(handle); then
+        move(left, grasping): GRASPING(any), AT_POSITION(object, start + 0.12 m left, 0.05). A met skill hands over
+        to the next and records the object's position."""
+        object_cloud, part_cloud, origin = self._posed_clouds()
+        if self.skill == 0:
+            done = self._grasping(part_cloud)
+        else:
+            done = self._grasping(object_cloud) and float(np.linalg.norm(origin - self.skill_start - MOVE)) < 0.05
+        if done:
+            self.skill, self.skill_start = min(self.skill + 1, 1), origin
+        return done
+
+    def step_like_the_original(self, tcp_pos, tcp_quat_xyzw=HOME_TCP_QUAT_XYZW, finger=panda.FINGER_OPEN) -> bool:
+        """One env step: IK + motors + 12 physics steps + the current skill's check; returns whether it is met."""
         self.step_physics(tcp_pos, tcp_quat_xyzw, finger)
-        return self.predicates()
+        return self.skill_check()
 
     def close(self) -> None:
         if self.client is not None and self.p.isConnected(self.client):
@@ -397,15 +422,14 @@ def markdown(pybullet: PyBulletResult, ours: dict[tuple[int, int], PyBulletResul
         f"above a grasp pose on the mug's handle ({APPROACH_STEPS + APPROACH_HOLD} untimed steps), then {steps} timed "
         f"steps of a {CYCLE}-step cycle: 10 steps open descending to the grasp pose, 20 closed on the handle, 10 open "
         "rising back, 10 closed in the air at the hover pose. The gripper is commanded closed for 30 of every 50 "
-        "steps. On ours both fingers press the handle with > 20 N on about 6 of the 20 closed steps and meet in "
-        "the air on about 5 of the 10 (the steps on which our contact and fingertip searches run; they are skipped "
-        "when GRASPING and TOUCHING are false whatever they find); in PyBullet the fingers touch the handle on about "
-        "10 steps of each cycle and GRASPING holds on about 7. PyBullet: pybullet_data Panda, 1/240 s x 12 substeps, 150 solver "
-        "iterations, calculateInverseKinematics (20 iterations) every step, predicates on 10,000-point NumPy clouds "
-        "every step (its fingertip search every step, the contact search whenever a finger touches anything; "
-        "without the extra 12 physics steps the original's TOUCHING takes: generous to PyBullet). Ours: "
-        "`PartInstructEnv`, 5 ms x 10 substeps, batched JAX IK, the goals of a type-3 episode (grasp the handle, "
-        "move it left) every step. The engines run in alternating repeats (PyBullet, then one configuration of "
+        "steps; both fingers press the handle with > 20 N on about 6 of the 20 closed steps. PyBullet: pybullet_data "
+        "Panda, 1/240 s x 12 substeps, 150 solver iterations, calculateInverseKinematics (20 iterations) every step, "
+        "then the original's check of the current skill (spec 5.2) on 10,000-point NumPy clouds every step: both "
+        "clouds moved to the object's pose, GRASPING of the handle (the contact search whenever a finger touches "
+        "something), then for the move GRASPING(any) and AT_POSITION. Ours: "
+        "`PartInstructEnv`, 5 ms x 10 substeps, batched JAX IK, the goals of the same type-3 episode (grasp the "
+        "handle, move it left) every step, each part-fact search only when a current goal reads it. The engines run "
+        "in alternating repeats (PyBullet, then one configuration of "
         "ours, and again); each per-core ratio is ours over the PyBullet repeat just before it, median and range "
         "over repeats. 'Physics threads' counts MuJoCo's worker threads; XLA may run the JAX parts on the other "
         "core, so single-thread rows are an upper bound per core. Target (DESIGN.md): >= 5x per core.\n\n"
