@@ -167,3 +167,10 @@ def test_bad_input_exits_2(tmp_path, capsys, args, message):
 def test_help_explains_outputs_and_resume(command_help):
     out = command_help("demos")
     assert "data/<category>.hdf5" in out and "resume" in out and "--replay" in out
+
+
+def test_generating_for_every_split_is_refused_by_name():
+    from partinstruct_mjx.errors import TaskError
+
+    with pytest.raises(TaskError, match="split None"):
+        select_episodes(None, 10)

@@ -321,6 +321,8 @@ def select_episodes(split: str | None = "train", count: int | None = None, seed:
         raise TaskError(f"{root}: no catalog.json with objects")
     if count is not None and count < 1:
         raise TaskError(f"the number of episodes must be >= 1, got {count}")
+    if split is None and metadata is None:
+        raise TaskError("split None (every split) only selects from a metadata file; name a split to generate")
     wanted = split_types(split) if split is not None else None
     known = sorted({entry["category"] for entry in catalog})
     for category in categories or ():
