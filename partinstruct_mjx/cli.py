@@ -291,7 +291,9 @@ def _bench_eval(args) -> str:
     results = []
     for batch in args.batch_sizes or [16]:
         config = evaluation.bench_config(args.episodes or 8, batch, args.backend, args.threads)
-        result = evaluation.measure(config, args.repeats)
+        result = evaluation.measure(config, args.repeats, on_run=lambda index, run: print(
+            f"batch {batch:>3}, {'cold' if index == 0 else 'warm'} run: {run.episodes} episodes in {run.wall_s:.1f} s "
+            f"({run.episodes / run.wall_s * 60:,.1f} episodes/min), {run.successes} successful", flush=True))
         results.append(result)
         print(f"batch {batch:>3}: {result.episodes_per_min:,.1f} episodes/min, oracle success "
               f"{result.cold.successes}/{result.cold.episodes}, compile {result.compile_s:.1f} s, "

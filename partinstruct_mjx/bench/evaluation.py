@@ -55,8 +55,9 @@ class EvalBenchResult:
         return FULL_EVALUATION / self.episodes_per_min + self.compile_s / 60
 
 
-def measure(config: EvalConfig, repeats: int) -> EvalBenchResult:
-    """One cold and `repeats` warm evaluations of the oracle with `config`."""
+def measure(config: EvalConfig, repeats: int, on_run=None) -> EvalBenchResult:
+    """One cold and `repeats` warm evaluations of the oracle with `config`; `on_run(index, run)` sees each run as it
+    ends (index 0 is the cold one), so a stopped benchmark still shows what it measured."""
     import jax
 
     from partinstruct_mjx.eval.runner import evaluate
@@ -70,6 +71,8 @@ def measure(config: EvalConfig, repeats: int) -> EvalBenchResult:
             wall = time.perf_counter() - start
             outcomes = results["episodes"]
             runs.append(EvalRun(len(outcomes), sum(bool(e["success"]) for e in outcomes), wall))
+            if on_run is not None:
+                on_run(index, runs[-1])
     return EvalBenchResult(config, runs[0], runs[1:])
 
 
