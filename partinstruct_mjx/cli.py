@@ -73,7 +73,7 @@ def main(argv: list[str] | None = None) -> int:
     bench.add_argument("--steps", type=int, default=None,
                        help="control steps per timed run (default 200; mjx: env steps per jitted call, default 20)")
     bench.add_argument("--repeats", type=int, default=None,
-                       help="timed runs per batch size (default 5; 1 for demos, whose runs take minutes)")
+                       help="timed runs per batch size (default 5; 1 for demos and eval, whose runs take minutes)")
     bench.add_argument("--impls", nargs="+", choices=["jax", "warp"], default=["jax", "warp"],
                        help="mjx suite: MJX implementations to measure (default both; warp needs warp-lang and a "
                             "CUDA GPU). A run of one writes its own section of the output")

@@ -170,3 +170,20 @@ def test_mjx_suite_end_to_end_on_cpu(tmp_path, monkeypatch, capsys):
     from partinstruct_mjx.bench import plot
 
     assert plot.plot(tmp_path / "bench_data", tmp_path / "plot.png").exists()
+
+
+def test_warp_only_run_writes_its_own_section(tmp_path):
+    """`--impls warp` measures no JAX rows and writes a section of its own (here without warp-lang or a GPU: the
+    row says why it was not measured)."""
+    from mujoco.mjx import warp as mjx_warp
+
+    from partinstruct_mjx.cli import main
+
+    if mjx_warp.WARP_INSTALLED:
+        pytest.skip("warp-lang is installed here")
+    report = tmp_path / "benchmarks.md"
+    assert main(["bench", "mjx", "--impls", "warp", "--object", str(MUG), "--batch-sizes", "4096", "--output",
+                 str(report)]) == 0
+    text = report.read_text()
+    assert "<!-- bench:mjx_cpu_warp -->" in text and "## MJX env steps (impl warp, CPU)" in text
+    assert "| mug_000 | warp | 10 | - | 4,096 | not installed" in text and "| jax |" not in text

@@ -36,14 +36,17 @@ class EvalBenchResult:
     cold: EvalRun
     warm: list[EvalRun]
 
+    def _rates(self) -> list[float]:
+        """Episodes/min of each warm run."""
+        return [r.episodes / r.wall_s * 60 for r in self.warm]
+
     @property
     def episodes_per_min(self) -> float:
-        return float(np.median([r.episodes / r.wall_s * 60 for r in self.warm]))
+        return float(np.median(self._rates()))
 
     @property
     def episodes_per_min_range(self) -> tuple[float, float]:
-        rates = [r.episodes / r.wall_s * 60 for r in self.warm]
-        return min(rates), max(rates)
+        return min(self._rates()), max(self._rates())
 
     @property
     def compile_s(self) -> float:
