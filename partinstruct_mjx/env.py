@@ -22,7 +22,7 @@ from partinstruct_mjx.control.rotations import euler_xyz_to_quat, quat_to_euler_
 from partinstruct_mjx.errors import SceneError, TaskError
 from partinstruct_mjx.sim import panda
 from partinstruct_mjx.sim.scene import SceneConfig, build_scene
-from partinstruct_mjx.sim.state import SceneState
+from partinstruct_mjx.sim.state import HostBlock, SceneState, unpacked
 from partinstruct_mjx.tasks import progress
 from partinstruct_mjx.tasks.part_geometry import load_parts
 
@@ -95,7 +95,6 @@ class PartInstructEnv:
         self._target_rows = np.full((batch_size, progress.MAX_SKILLS), -1, np.int32)
         self._surface = None
         self._renderer = None
-        self._initial = jax.jit(progress.initial_task_state)
 
     def close(self) -> None:
         self.backend.close()
@@ -129,7 +128,7 @@ class PartInstructEnv:
             for s, step in enumerate(episode.chain):
                 if step.part is not None:
                     self._target_rows[b, s] = self.part_names.index(step.part)
-        task = self._initial(data.for_jit(), self.geometry, compiled)
+        task = _initial(data.for_jit(), self.geometry, compiled)
         limits = np.array([STEP_LIMIT_TEST4 if e.split == "test4" else STEP_LIMIT for e in episodes], np.int32)
         info = {"steps": jnp.zeros(self.batch_size, jnp.int32), "step_limit": jnp.asarray(limits),
                 "truncated": jnp.zeros(self.batch_size, bool),
@@ -196,10 +195,16 @@ class PartInstructEnv:
                 for b in range(self.batch_size)]
 
 
+@jax.jit
+def _initial(data: SceneState | HostBlock, geometry, compiled: dict) -> progress.TaskState:
+    return progress.initial_task_state(unpacked(data), geometry, compiled)
+
+
 @jax.jit(static_argnames="skill_mode")
-def _advance(task, info: dict, done, data: SceneState, geometry, ctrl, skill_mode: bool):
+def _advance(task, info: dict, done, data: SceneState | HostBlock, geometry, ctrl, skill_mode: bool):
     """Everything of a step after physics in one dispatch. Returns only what changes (every returned array costs
     time at batch 1): the `progress.PROGRESS_FIELDS` of the task, the changed info and `_outputs`."""
+    data = unpacked(data)
     task = progress.update(task, data, geometry, skill_mode=skill_mode)
     steps = info["steps"] + ~done
     info = {"steps": steps, "truncated": ~task.success & (steps >= info["step_limit"]), "joint_targets": ctrl[:, :7]}
@@ -208,8 +213,9 @@ def _advance(task, info: dict, done, data: SceneState, geometry, ctrl, skill_mod
 
 
 @jax.jit
-def _outputs(data: SceneState, task: progress.TaskState, info: dict) -> dict:
+def _outputs(data: SceneState | HostBlock, task: progress.TaskState, info: dict) -> dict:
     """The arrays of a State that are computed from the task state and info rather than copied from them."""
+    data = unpacked(data)
     return {"obs": observe(data, task), "reward": task.success.astype(jnp.float32),
             "done": task.success | info["truncated"],
             "goals": {f"goal_{g}": task.goals_met[:, g] for g in range(progress.MAX_GOALS)}}

@@ -79,6 +79,26 @@ def test_state_shapes_and_poses_agree_with_qpos(scene):
     assert (state.contact_geom == -1).all() and (state.contact_force == 0).all()  # open gripper touches nothing
 
 
+def test_host_state_travels_to_jit_as_one_block(scene):
+    import jax
+
+    from partinstruct_mjx.sim.state import HostBlock, unpacked
+
+    with MujocoBackend(scene, 2) as backend:
+        state = backend.reset(*_placements(2))
+        for _ in range(10):  # the fingers close: the finger fields change from their reset values
+            state = backend.step(np.tile(np.r_[panda.HOME_ARM_QPOS, panda.FINGER_CLOSED], (2, 1)))
+    block = state.for_jit()
+    assert isinstance(block, HostBlock) and block.floats.dtype == np.float32
+    restored = jax.jit(unpacked)(block)
+    assert restored.qpos is None and restored.qvel is None
+    for name in ("time", "arm_qpos", "finger_qpos", "tcp_pos", "tcp_quat", "object_pos", "object_quat", "body_pos",
+                 "body_quat", "contact_pos", "contact_force", "contact_geom"):
+        original = getattr(state, name)
+        np.testing.assert_array_equal(np.asarray(getattr(restored, name)), original.astype(np.asarray(
+            getattr(restored, name)).dtype), err_msg=name)
+
+
 def test_physics_state_round_trip_replays_exactly(scene):
     controls = moving_controls(2, 20, seed=3)
     with MujocoBackend(scene, 2) as backend:

@@ -23,6 +23,7 @@ from partinstruct_mjx.oracle import candidates, lookahead, pushing, rotation
 from partinstruct_mjx.oracle.kinds import GRASP, MOVE, RELEASE, ROTATE, SKILL_KINDS, TOUCH
 from partinstruct_mjx.sim import panda
 from partinstruct_mjx.sim.scene import TABLE_HEIGHT
+from partinstruct_mjx.sim.state import unpacked
 from partinstruct_mjx.tasks import predicates, progress
 from partinstruct_mjx.tasks.part_geometry import PartGeometry, PartNames, spatial_masks
 from partinstruct_mjx.tasks.vocabulary import OPPOSITE, UNIT_DISTANCE, direction_vector
@@ -195,7 +196,9 @@ def plan(oracle: OracleState, data, geometry: PartGeometry, kinematics, joint_ta
     """Plan for every environment that asks (`needs_plan`): the grasp or touch pose at the start of those skills
     (the `attempt`-th reachable candidate in rank order; an empty sample is drawn again on the next step until
     MAX_ATTEMPTS, then the skill fails), the turn at the start of a
-    rotation (rotation.py). The others pass through; each kind is computed only when some environment needs it."""
+    rotation (rotation.py). The others pass through; each kind is computed only when some environment needs it.
+    `data` is a SceneState or its `for_jit()`."""
+    data = unpacked(data)
     index = jnp.clip(oracle.skill, 0, progress.MAX_SKILLS - 1)[:, None]
     kind = jnp.take_along_axis(oracle.kind, index, axis=1)[:, 0]
     push = (kind == MOVE) & jnp.take_along_axis(oracle.touching, index, axis=1)[:, 0]
@@ -360,8 +363,10 @@ def act(oracle: OracleState, data, task: progress.TaskState, geometry: PartGeome
     task: the env's progress; its skill effects (`skills`) are what the machine judges its skills by, and its spatial
     parts (`masks`) are the ones the env judges the task by, so the part a rotation turns or a push touches again is
     the env's. follow_env (an env in skill mode): the machine follows the env's skill chain (a skill ends when the env
-    counts it, judged from the env's p0 and spatial parts) instead of its own tolerances.
+    counts it, judged from the env's p0 and spatial parts) instead of its own tolerances. `data` is a SceneState or
+    its `for_jit()`.
     """
+    data = unpacked(data)
     follow = (task.skill_index, task.skill_p0, task.masks)
     before = oracle.skill
     oracle = jax.vmap(partial(_act_one, follow_env=follow_env), in_axes=(0, 0, None, 0, 0))(
