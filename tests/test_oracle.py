@@ -62,21 +62,6 @@ def test_grasp_candidates_close_on_the_part(episodes):
     assert abs(float(np.dot(grasps["approach"][best], grasps["closing"][best]))) < 1e-4
 
 
-def test_grasps_need_the_straight_part_of_the_pads(episodes):
-    # Scissors lie flat: the blade is a few millimetres thick, below the pads' straight middle (the pads stay 2 mm
-    # above the table and their round ends cannot press it), the handles are thick enough.
-    episode = next(e for e in episodes if e.obj_class == "scissors")
-    found = {}
-    with _env(episode) as env:
-        state = env.reset(jax.random.PRNGKey(0), [episode])
-        for part in ("blade", "handle"):
-            points, normals, valid, part_points, part_normals, part_valid = _clouds(env, state, part)
-            grasps = candidates.grasp_candidates(points, normals, valid, part_points, part_normals, part_valid,
-                                                 jax.random.PRNGKey(1))
-            found[part] = int(np.isfinite(np.asarray(grasps["score"])).sum())
-    assert found["blade"] == 0 and found["handle"] >= 1, found
-
-
 def test_touch_before_a_push_comes_from_behind_first(episodes):
     episode = next(e for e in episodes if e.task_type == 4 and e.obj_class == "box")
     push = episode.chain[1].direction

@@ -25,7 +25,6 @@ PAD_CENTRE = 0.0394
 """Distance from the TCP along its z axis to the middle of the finger pads (hand frame z 0.0944 vs 0.055)."""
 PAD_HALF_WIDTH = 0.0125
 PAD_HALF_LENGTH = 0.017
-PAD_RADIUS = 0.007
 PAD_OUTER = 0.058
 """Outer face of an open pad (0.04 opening + 0.014 pad + margin) from the grasp centre, across the fingers."""
 MAX_GRASP_WIDTH = 0.074
@@ -247,10 +246,7 @@ def _score(centre, approach, closing, object_points, object_normals, object_vali
     near_pad = on_part & (jnp.abs(pv) > 0.5 * width - 0.006)
     n_between = between.sum()
     target_share = jnp.minimum(on_part.sum() / jnp.maximum(n_between, 1), 1.0)
-    # The pads are capsules: only their straight middle presses flat; a section that only their round ends reach
-    # (a blade lying on the table, below the pads kept clear of it) slips out as they close.
-    n_core = (between & (jnp.abs(t) < PAD_HALF_LENGTH - PAD_RADIUS)).sum()
-    checks = jnp.stack([n_core >= 4, width < MAX_GRASP_WIDTH, ~pads.any(), ~hand.any(), above_table,
+    checks = jnp.stack([n_between >= 4, width < MAX_GRASP_WIDTH, ~pads.any(), ~hand.any(), above_table,
                         near_pad.sum() >= 2, antipodal > MIN_ANTIPODAL])
     valid = checks.all()
     # Grasps far from the object's middle let it pivot or squeeze out when lifted.
