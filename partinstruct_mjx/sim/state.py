@@ -78,8 +78,8 @@ _BLOCK_FIELDS = ("time", "arm_qpos", "finger_qpos", "tcp_pos", "tcp_quat", "obje
 class HostBlock:
     """A host SceneState's float fields in one (B, F) float32 block, plus its contact geoms.
 
-    A jitted call copies each host array on its own (about 5 us apiece on this CPU), so a batch-1 env step spent
-    more time handing twelve arrays to XLA than on its predicates; two arrays cost a sixth of that.
+    A jitted call takes each host array on its own; one block instead of twelve arrays made the env's progress update
+    about 10 us faster per call at batch 1 on this 2-core CPU (docs/benchmarks.md, the PyBullet section).
     """
 
     floats: np.ndarray
