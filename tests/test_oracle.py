@@ -9,8 +9,8 @@ import pytest
 
 from partinstruct_mjx.assets.catalog import load_catalog
 from partinstruct_mjx.control.rotations import quat_rotate
-from partinstruct_mjx.env import EnvConfig, PartInstructEnv
-from partinstruct_mjx.oracle import candidates, machine, pushing
+from partinstruct_mjx.env import EnvConfig, PartInstructEnv, hold_action
+from partinstruct_mjx.oracle import backtrack, candidates, machine, pushing
 from partinstruct_mjx.oracle.rollout import OraclePolicy, run_oracle
 from partinstruct_mjx.paths import assets_root
 from partinstruct_mjx.tasks import predicates
@@ -285,3 +285,60 @@ def test_a_grasp_counts_once_the_fingers_stop_a_touch_as_soon_as_it_holds():
     assert not bool(machine.reach_counted(False, False, 5, 0.02, still))
     # A touch does not wait for the fingers (they are closed before it approaches).
     assert bool(machine.reach_counted(True, True, 2, 0.0, 0.01))
+
+
+def test_backtracking_restores_a_scene_exactly_and_leaves_the_others(episodes):
+    """A retried scene goes back to its saved physics, task and machine state (with a new random key) and, given the
+    same actions again, repeats its steps exactly; the scene beside it goes on as if nothing happened."""
+    batch = [e for e in episodes if e.obj_class == "mug"][:2]
+    with _env(batch[0], 2) as env:
+        state = env.reset(jax.random.PRNGKey(0), batch)
+        policy = OraclePolicy()
+        policy.reset(env, state, jax.random.PRNGKey(0))
+        search = backtrack.Backtracker(env, state, policy.state, tries=2)
+        start = hold_action(np.asarray(state.obs["tcp_pose"]))
+        actions = [start + [0.0, 0.0, -0.01 * k, 0, 0, 0, 0] for k in range(6)]
+        first = []
+        for action in actions:
+            state = env.step(state, action)
+            first.append(state.data.qpos.copy())
+        failed = np.array([True, False])
+        rows, state, oracle = search.retry(failed, state, policy.state)
+        assert rows.tolist() == [True, False]
+        assert int(state.info["steps"][0]) == 0 and int(state.info["steps"][1]) == len(actions)
+        np.testing.assert_array_equal(state.data.qpos[1], first[-1][1])
+        assert not np.array_equal(np.asarray(oracle.key[0]), np.asarray(policy.state.key[0]))
+        np.testing.assert_array_equal(np.asarray(oracle.key[1]), np.asarray(policy.state.key[1]))
+        for action, qpos in zip(actions, first):
+            state = env.step(state, action)
+            np.testing.assert_array_equal(state.data.qpos[0], qpos[0])
+        # The second failure has no try left.
+        rows, _, _ = search.retry(failed, state, oracle)
+        assert not rows.any()
+
+
+@pytest.mark.slow
+def test_backtracking_finds_a_grasp_the_first_try_missed_and_the_demo_replays(episodes):
+    """scissors_006, type 1: the first try's three grasp samples are empty; a retry's samples are not. The demo of
+    the try that stood replays to success in a fresh env, and the look-ahead policy repeats it without rewinding."""
+    episode = next(e for e in episodes if e.obj_id == "scissors_006" and e.task_type == 1)
+    key = jax.random.PRNGKey(0)
+    with _env(episode) as env:
+        single = run_oracle(env, [episode], key, record=False, tries=1)
+        searched = run_oracle(env, [episode], key, tries=4)
+    assert not single.success[0] and single.failed_skill[0] == 0
+    assert searched.success[0] and searched.segment_tries[0, 0] > 0
+    length = int(searched.length[0])
+    with _env(episode) as env:
+        state = env.reset(key, [episode])
+        for action in searched.actions[0, :length]:
+            state = env.step(state, action[None])
+        assert bool(state.task.success[0])
+    with _env(episode) as env:
+        state = env.reset(key, [episode])
+        policy = OraclePolicy(lookahead_tries=4)
+        policy.reset(env, state, key)
+        for _ in range(length):
+            state = env.step(state, policy.act(env, state))
+        policy.close()
+        assert bool(state.task.success[0])

@@ -13,7 +13,9 @@ DESCRIPTION = (
     "successful episode as a demonstration with state and point-cloud observations: agentview_pcd (T, 1024, 3) and "
     "agentview_part_pcd (T, 1024, 4: xyz in the static camera's optical frame + target-part flag) from the JAX point "
     "renderer, tcp_pose, joint_states, gripper_state, object_pose, the 7-D absolute actions, the executing skill per "
-    "step and the reset physics state. --episodes N spreads N episodes over every task type and category of the "
+    "step and the reset physics state. A failed grasp or touch and the skills after it are tried again from the "
+    "simulator state before it (--oracle-tries); a demo keeps only the try that worked, so it is one real trajectory "
+    "from the reset state. --episodes N spreads N episodes over every task type and category of the "
     "split (generated from --seed exactly as `partinstruct episodes` does); --metadata uses an existing file instead.")
 
 EPILOG = """\
@@ -30,8 +32,8 @@ output (DIR):
 
 resume: every batch is committed atomically. Re-running the same command skips episodes already committed
 (successes and failures), so an interrupted run (Ctrl-C finalizes what was committed) continues where it stopped,
-and a larger --episodes adds only the new episodes. A directory remembers its backend, seed and sampler and refuses
-different ones. The same episodes, --batch-size and --seed give the same demos.
+and a larger --episodes adds only the new episodes. A directory remembers its backend, seed, sampler and
+--oracle-tries and refuses different ones. The same episodes, --batch-size and --seed give the same demos.
 
 speed: each object category and batch size compiles the oracle and the env step once per process (seconds to tens
 of seconds; JAX's persistent cache in ~/.cache/partinstruct_mjx/jax shortens later runs), so short runs are
@@ -77,6 +79,9 @@ def add_demos_parser(subparsers) -> argparse.ArgumentParser:
     parser.add_argument("--backend", choices=["mujoco", "mjx"], default="mujoco",
                         help="physics: mujoco (C MuJoCo on CPU threads, default) or mjx")
     parser.add_argument("--threads", type=int, default=None, metavar="N", help="physics threads (default: all cores)")
+    parser.add_argument("--oracle-tries", type=int, default=None, metavar="N",
+                        help="tries per grasp or touch: a failed one and what follows it is tried again from the "
+                             "state before it with other random draws (default 4; 1: no backtracking)")
     parser.add_argument("--assets", type=Path, default=None, metavar="DIR",
                         help="assets root with catalog.json (default: the built-in library)")
     parser.add_argument("--render-chunk", type=int, default=RENDER_CHUNK, metavar="N", help=argparse.SUPPRESS)
@@ -110,7 +115,10 @@ def run_demos(args: argparse.Namespace) -> int:
     from partinstruct_mjx.data.demos import check_env_args
     from partinstruct_mjx.data.synthesis import env_args, remembered_selection, select_episodes, synthesize
 
-    check_env_args(args.out, env_args(args.backend, args.sampler, args.seed))  # before the selection is stored
+    if args.oracle_tries is not None and args.oracle_tries < 1:
+        raise DataError(f"--oracle-tries must be >= 1, got {args.oracle_tries}")
+    # before the selection is stored
+    check_env_args(args.out, env_args(args.backend, args.sampler, args.seed, args.oracle_tries))
     if args.metadata is not None:
         episodes = select_episodes(args.split, args.episodes, args.seed, args.types, args.categories, args.metadata,
                                    args.assets)
@@ -121,7 +129,7 @@ def run_demos(args: argparse.Namespace) -> int:
     try:
         summary = synthesize(episodes, args.out, batch_size=args.batch_size, seed=args.seed, sampler=args.sampler,
                              backend=args.backend, progress=not args.quiet, assets=args.assets,
-                             num_threads=args.threads, render_chunk=args.render_chunk)
+                             num_threads=args.threads, render_chunk=args.render_chunk, oracle_tries=args.oracle_tries)
     except KeyboardInterrupt:
         print(f"\ninterrupted: committed batches are finalized in {args.out}; run the same command again to resume",
               file=sys.stderr)

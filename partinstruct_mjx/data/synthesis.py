@@ -43,14 +43,17 @@ SELECTIONS_DIR = "selections"
 """Run-directory folder of generated episode selections (`remembered_selection`)."""
 
 
-def env_args(backend: str = "mujoco", sampler: str = "stride", seed: int = 0) -> dict:
-    """The robomimic-style env_args of a run directory; a resumed run must match them (DemoWriter checks)."""
+def env_args(backend: str = "mujoco", sampler: str = "stride", seed: int = 0, oracle_tries: int | None = None) -> dict:
+    """The robomimic-style env_args of a run directory; a resumed run must match them (DemoWriter checks).
+    `oracle_tries`: tries per grasp or touch segment (oracle/backtrack.py; None: its SEGMENT_TRIES)."""
     from partinstruct_mjx.env import STEP_LIMIT, STEP_LIMIT_TEST4
+    from partinstruct_mjx.oracle.backtrack import SEGMENT_TRIES
 
     return {"env_name": ENV_NAME, "type": "partinstruct_mjx",
             "env_kwargs": {"backend": backend, "skill_mode": False, "rotation": "euler", "control_freq": 20,
                            "step_limit": STEP_LIMIT, "step_limit_test4": STEP_LIMIT_TEST4},
-            "synthesis": {"oracle": "partinstruct_mjx.oracle", "seed": seed, "pcd_sampler": sampler,
+            "synthesis": {"oracle": "partinstruct_mjx.oracle", "seed": seed,
+                          "oracle_tries": SEGMENT_TRIES if oracle_tries is None else oracle_tries, "pcd_sampler": sampler,
                           "pcd_camera": "agentview", "pcd_size": 1024}}
 
 
@@ -76,13 +79,13 @@ class Timing:
 def synthesize(episodes: list[Episode], out_dir: str | os.PathLike, batch_size: int = 16, seed: int = 0,
                sampler: str = "stride", backend: str = "mujoco", progress: bool = True,
                assets: str | os.PathLike | None = None, num_threads: int | None = None,
-               render_chunk: int = RENDER_CHUNK) -> dict:
+               render_chunk: int = RENDER_CHUNK, oracle_tries: int | None = None) -> dict:
     """Run the oracle on `episodes` (skipping those already committed in `out_dir`) and store the successful demos.
 
     Returns the run directory's summary (see DemoWriter.finalize) plus 'run': this call's counts and its Timing.
     On KeyboardInterrupt the committed batches are finalized before the interrupt is re-raised. A demo's
     initial_state is the MuJoCo physics state after reset; the mjx backend has none, so there it is the first
-    step's joint_states, gripper_state and object_pose.
+    step's joint_states, gripper_state and object_pose. `oracle_tries`: see `env_args`.
     """
     from tqdm import tqdm
 
@@ -92,13 +95,16 @@ def synthesize(episodes: list[Episode], out_dir: str | os.PathLike, batch_size: 
         raise DataError(f"batch_size must be >= 1, got {batch_size}")
     if sampler not in SAMPLERS:
         raise DataError(f"unknown point-cloud sampler '{sampler}'; expected one of {', '.join(SAMPLERS)}")
+    if oracle_tries is not None and oracle_tries < 1:
+        raise DataError(f"oracle_tries must be >= 1, got {oracle_tries}")
     counts = Counter(e.ep_id for e in episodes)
     repeated = sorted(ep_id for ep_id, n in counts.items() if n > 1)
     if repeated:
         raise DataError(f"episode {repeated[0]} is given more than once")
     root = Path(assets) if assets is not None else assets_root()
     objects = object_paths(episodes, root)
-    writer = DemoWriter(out_dir, env_args(backend, sampler, seed))
+    args = env_args(backend, sampler, seed, oracle_tries)
+    writer = DemoWriter(out_dir, args)
     done = writer.finished_ids()
     todo = [e for e in episodes if e.ep_id not in done]
     groups = object_groups(todo)
@@ -113,7 +119,8 @@ def synthesize(episodes: list[Episode], out_dir: str | os.PathLike, batch_size: 
             try:
                 for batch, size in object_batches(mine, batch_size):
                     if size not in workers:
-                        workers[size] = _ObjectWorker(objects[key], size, backend, num_threads, timing)
+                        workers[size] = _ObjectWorker(objects[key], size, backend, num_threads, timing,
+                                                      args["synthesis"]["oracle_tries"])
                     demos, failures, record = workers[size].run(batch, jax.random.PRNGKey(seed), sampler,
                                                                 render_chunk)
                     tick = time.perf_counter()
@@ -189,7 +196,8 @@ def object_paths(episodes: list[Episode], root: Path) -> dict[tuple[str, str], P
 class _ObjectWorker:
     """One env (and point-cloud surface) of one object and batch size, reused for all its batches."""
 
-    def __init__(self, object_xml: Path, batch_size: int, backend: str, num_threads: int | None, timing: Timing):
+    def __init__(self, object_xml: Path, batch_size: int, backend: str, num_threads: int | None, timing: Timing,
+                 oracle_tries: int):
         from partinstruct_mjx.env import EnvConfig, PartInstructEnv
         from partinstruct_mjx.obs import point_renderer
         from partinstruct_mjx.obs.cameras import AGENTVIEW, scene_camera
@@ -197,6 +205,7 @@ class _ObjectWorker:
         tick = time.perf_counter()
         self.batch_size = batch_size
         self.timing = timing
+        self.oracle_tries = oracle_tries
         self.env = PartInstructEnv(object_xml, batch_size,
                                    EnvConfig(backend=backend, skill_mode=False, num_threads=num_threads))
         self.surface = point_renderer.surface_points(self.env.scene, self.env.geometry)
@@ -215,7 +224,7 @@ class _ObjectWorker:
         rollout_key, cloud_key = jax.random.split(key)
         padded = pad_batch(batch, self.batch_size)
         tick = time.perf_counter()
-        rollout = run_oracle(self.env, padded, rollout_key, record=True)
+        rollout = run_oracle(self.env, padded, rollout_key, record=True, tries=self.oracle_tries)
         rollout_s = time.perf_counter() - tick
         self.timing.rollout_s += rollout_s
 
@@ -245,7 +254,7 @@ class _ObjectWorker:
         record = {"object": batch[0].obj_id, "category": category_slug(batch[0].obj_class), "episodes": real,
                   "successes": len(demos), "steps": int(length.sum()),
                   "demo_steps": int(sum(length[b] for b in winners)),
-                  "scene_steps": int(self.batch_size * rollout.actions.shape[1]),
+                  "scene_steps": int(self.batch_size * rollout.simulated_steps),
                   "env_s": self.env_s, "rollout_s": rollout_s, "render_s": render_s}
         self.env_s = 0.0
         return demos, failures, record

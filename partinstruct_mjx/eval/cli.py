@@ -19,7 +19,9 @@ DESCRIPTION = (
 
 EPILOG = """\
 policies:
-  --policy oracle       the scripted expert; it reads the privileged simulator state and ignores instructions
+  --policy oracle       the scripted expert; it reads the privileged simulator state and ignores instructions.
+                        It plans each batch first in a private copy of the env, retrying a failed grasp or touch
+                        there (--oracle-tries), then acts in the env with the draws that worked (docs/oracle.md)
   --policy RUN_DIR      a training run, loaded with partinstruct_mjx.train.policy.load_policy(RUN_DIR)
   From Python, partinstruct_mjx.eval.evaluate(config, out_dir, policy=..., planner=...) takes any object with
   reset(env, state, key) and act(env, state, instructions, key) -> (B, 7) Euler actions (docs/evaluation.md).
@@ -86,6 +88,9 @@ def add_eval_parser(subparsers) -> argparse.ArgumentParser:
     parser.add_argument("--threads", type=int, default=None, metavar="N", help="physics threads (default: all cores)")
     parser.add_argument("--assets", type=Path, default=None, metavar="DIR",
                         help="assets root with catalog.json (default: the built-in library)")
+    parser.add_argument("--oracle-tries", type=int, default=None, metavar="N",
+                        help="--policy oracle: tries per grasp or touch in its look-ahead copy of the env (default "
+                             "4; 1: no look-ahead, the closed-loop oracle alone)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     parser.set_defaults(func=run_eval)
     return parser
@@ -109,7 +114,8 @@ def run_eval(args: argparse.Namespace) -> int:
         videos=args.videos, seed=args.seed, max_steps=args.max_steps,
         metadata=None if args.metadata is None else str(args.metadata),
         categories=tuple(args.categories) if args.categories else None,
-        assets=None if args.assets is None else str(args.assets), num_threads=args.threads)
+        assets=None if args.assets is None else str(args.assets), num_threads=args.threads,
+        oracle_tries=args.oracle_tries)
     enable_compilation_cache()
     try:
         results = evaluate(config, args.out, progress=not args.quiet)

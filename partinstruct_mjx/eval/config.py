@@ -41,6 +41,8 @@ class EvalConfig:
       categories: only these object categories.
       assets: assets root with catalog.json (None: the built-in library).
       num_threads: physics threads of the mujoco backend (None: all cores).
+      oracle_tries: `--policy oracle` only: tries per grasp or touch in its private look-ahead copy of the env
+        (1: the closed-loop oracle alone; None: `oracle.backtrack.SEGMENT_TRIES`).
     `videos` and `num_threads` do not change outcomes, so a run directory may be resumed with other values.
     """
 
@@ -59,6 +61,7 @@ class EvalConfig:
     categories: tuple[str, ...] | None = None
     assets: str | None = None
     num_threads: int | None = None
+    oracle_tries: int | None = None
 
     def __post_init__(self):
         unknown = [s for s in self.splits if s not in SPLITS]
@@ -70,7 +73,7 @@ class EvalConfig:
             raise EvalError(f"unknown mode '{self.mode}'; expected one of {', '.join(MODES)}")
         if self.backend not in ("mujoco", "mjx"):
             raise EvalError(f"unknown backend '{self.backend}'; expected mujoco or mjx")
-        for name in ("batch_size", "planner_every", "episodes_per_split", "max_steps"):
+        for name in ("batch_size", "planner_every", "episodes_per_split", "max_steps", "oracle_tries"):
             value = getattr(self, name)
             if value is not None and value < 1:
                 raise EvalError(f"{name} must be >= 1, got {value}")

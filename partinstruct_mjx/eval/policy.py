@@ -8,6 +8,7 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 
 from partinstruct_mjx.eval.config import ORACLE, EvalError
+from partinstruct_mjx.oracle.backtrack import SEGMENT_TRIES
 from partinstruct_mjx.oracle.rollout import OraclePolicy
 
 
@@ -23,10 +24,11 @@ class Policy(Protocol):
         """(B, 7) Euler action for this step: xyz, Euler 'xyz', finger opening in metres (spec 1.6)."""
 
 
-def load_policy(spec: str) -> Policy:
-    """'oracle', or the policy of a training run directory (`partinstruct_mjx.train.policy.load_policy`)."""
+def load_policy(spec: str, oracle_tries: int | None = None) -> Policy:
+    """'oracle' (looking ahead with `oracle_tries` tries per grasp or touch; None: the default), or the policy of a
+    training run directory (`partinstruct_mjx.train.policy.load_policy`)."""
     if spec == ORACLE:
-        return OraclePolicy()
+        return OraclePolicy(SEGMENT_TRIES if oracle_tries is None else oracle_tries)
     run_dir = Path(spec)
     if not run_dir.exists():
         raise EvalError(f"policy run directory not found: {run_dir} (expected a training run directory or "

@@ -24,7 +24,7 @@ from partinstruct_mjx.atomic import atomic_write
 from partinstruct_mjx.eval.config import EvalConfig, EvalError
 from partinstruct_mjx.eval.metrics import aggregate, results_markdown
 from partinstruct_mjx.eval.planner import Planner, make_planner
-from partinstruct_mjx.eval.policy import Policy, load_policy
+from partinstruct_mjx.eval.policy import OraclePolicy, Policy, load_policy
 from partinstruct_mjx.eval.skills import SkillProgress
 from partinstruct_mjx.tasks.episodes import SPLITS, Episode
 
@@ -64,7 +64,7 @@ def evaluate(config: EvalConfig, out_dir: str | os.PathLike, policy: Policy | No
     if out_dir.exists() and not out_dir.is_dir():
         raise EvalError(f"--out {out_dir} is a file, not a directory")
     if policy is None:
-        policy = load_policy(config.policy)
+        policy = load_policy(config.policy, config.oracle_tries)
     if not isinstance(policy, Policy):
         raise EvalError(f"the policy ({type(policy).__name__}) lacks reset(env, state, key) / act(env, state, "
                         f"instructions, key)")
@@ -109,6 +109,8 @@ def evaluate(config: EvalConfig, out_dir: str | os.PathLike, policy: Policy | No
                     env.close()
     finally:
         bar.close()
+        if isinstance(policy, OraclePolicy):
+            policy.close()
     meta["run"]["wall_s"] = time.perf_counter() - start
     return _write(out_dir, config, meta, records, complete=True)
 

@@ -18,7 +18,7 @@ from partinstruct_mjx.errors import SceneError
 from partinstruct_mjx.sim import panda
 from partinstruct_mjx.sim.mujoco_backend import initial_positions
 from partinstruct_mjx.sim.scene import Scene
-from partinstruct_mjx.sim.state import MAX_FINGER_CONTACTS, SceneState, body_rows
+from partinstruct_mjx.sim.state import MAX_FINGER_CONTACTS, SceneState, body_rows, select_rows
 
 
 class MjxBackend:
@@ -55,6 +55,15 @@ class MjxBackend:
         if ctrl.shape != (self.batch_size, panda.NUM_CTRL):
             raise SceneError(f"ctrl must have shape ({self.batch_size}, {panda.NUM_CTRL}), got {ctrl.shape}")
         self.data = _step(self.model, self.data, ctrl, self.scene.config.substeps)
+        return _extract(self.model, self.data, self._indices)
+
+    def snapshot(self) -> mjx.Data:
+        """The whole batch's physics state, for `restore` (MJX data is immutable: the snapshot is the data)."""
+        return self.data
+
+    def restore(self, snapshot: mjx.Data, rows: np.ndarray) -> SceneState:
+        """Put the environments where the (B,) mask `rows` holds back to `snapshot`; the others go on unchanged."""
+        self.data = select_rows(np.asarray(rows), snapshot, self.data)
         return _extract(self.model, self.data, self._indices)
 
 

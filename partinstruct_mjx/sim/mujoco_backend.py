@@ -98,17 +98,27 @@ class MujocoBackend:
             mujoco.mj_getState(self.model, data, out[i], _PHYSICS_STATE)
         return out
 
-    def set_physics_state(self, states: np.ndarray) -> SceneState:
-        """Restore states from `get_physics_state` and return the matching SceneState."""
+    def set_physics_state(self, states: np.ndarray, rows: np.ndarray | None = None) -> SceneState:
+        """Restore states from `get_physics_state` (only the environments where the (B,) mask `rows` holds, if
+        given) and return the matching SceneState."""
         states = np.asarray(states, dtype=float)
         size = mujoco.mj_stateSize(self.model, _PHYSICS_STATE)
         if states.shape != (self.batch_size, size):
             raise SceneError(f"physics states must have shape ({self.batch_size}, {size}), got {states.shape}")
-        for i, data in enumerate(self.datas):
+        for i in range(self.batch_size) if rows is None else np.flatnonzero(rows):
+            data = self.datas[i]
             mujoco.mj_setState(self.model, data, states[i], _PHYSICS_STATE)
             mujoco.mj_forward(self.model, data)
             self._ctrl[i] = data.ctrl
         return self._run(self._extract_chunk)
+
+    def snapshot(self) -> np.ndarray:
+        """The whole batch's physics state, for `restore` (the same as `get_physics_state`)."""
+        return self.get_physics_state()
+
+    def restore(self, snapshot: np.ndarray, rows: np.ndarray) -> SceneState:
+        """Put the environments where the (B,) mask `rows` holds back to `snapshot`; the others go on unchanged."""
+        return self.set_physics_state(snapshot, rows)
 
     # --- workers -------------------------------------------------------------------------------------------
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
@@ -106,6 +108,17 @@ class HostBlock:
 def unpacked(data: SceneState | HostBlock) -> SceneState:
     """The SceneState of `for_jit`'s output (inside jitted functions)."""
     return data.unpack() if isinstance(data, HostBlock) else data
+
+
+def select_rows(rows: np.ndarray, new, old):
+    """Pytrees of batch-first arrays: the rows of `new` where `rows` (a (B,) bool mask) holds, else those of `old`.
+    NumPy leaves stay NumPy (and keep their dtype); JAX leaves stay JAX."""
+
+    def pick(n, o):
+        xp = np if isinstance(n, np.ndarray) else jnp
+        return xp.where(rows.reshape(rows.shape + (1,) * (n.ndim - 1)), n, o)
+
+    return jax.tree.map(pick, new, old)
 
 
 def empty_scene_state(batch_size: int, nq: int, nv: int, nbody: int) -> SceneState:
