@@ -22,7 +22,7 @@ from partinstruct_mjx.control.rotations import euler_xyz_to_quat, quat_to_euler_
 from partinstruct_mjx.errors import SceneError, TaskError
 from partinstruct_mjx.sim import panda
 from partinstruct_mjx.sim.scene import SceneConfig, build_scene
-from partinstruct_mjx.sim.state import HostBlock, SceneState, unpacked
+from partinstruct_mjx.sim.state import HostBlock, SceneState, select_rows, unpacked
 from partinstruct_mjx.tasks import progress
 from partinstruct_mjx.tasks.part_geometry import load_parts
 
@@ -114,6 +114,22 @@ class PartInstructEnv:
         """
         if len(episodes) != self.batch_size:
             raise TaskError(f"reset needs {self.batch_size} episodes, got {len(episodes)}")
+        return self._start(key, list(episodes))
+
+    def reset_rows(self, state: State, key: jax.Array, rows, episodes: list) -> State:
+        """Start `episodes` in the scenes where the (B,) mask `rows` holds, in row order, as `reset` would; the
+        other scenes go on unchanged (they are not stepped meanwhile). For streaming many episodes through B scenes."""
+        rows = np.asarray(rows, bool)
+        if rows.shape != (self.batch_size,) or len(episodes) != rows.sum():
+            raise TaskError(f"reset_rows needs a ({self.batch_size},) row mask and one episode per chosen row, got "
+                            f"{rows.shape} and {len(episodes)} episodes")
+        full = list(self.episodes)
+        for b, episode in zip(np.flatnonzero(rows), episodes):
+            full[b] = episode
+        return self._start(key, full, rows, state)
+
+    def _start(self, key: jax.Array, episodes: list, rows: np.ndarray | None = None, old: State | None = None) -> State:
+        """Reset the scenes of `rows` (all if None) to their entries of `episodes` (one per scene)."""
         compiled = progress.compile_episodes([(e.task_type, list(e.chain)) for e in episodes], self.part_names)
         poses = np.array([e.obj_pose for e in episodes], dtype=float)
         if poses.shape != (self.batch_size, 7):
@@ -121,8 +137,8 @@ class PartInstructEnv:
         noise = self.config.object_noise * jax.random.uniform(key, (self.batch_size, 2), minval=-1.0, maxval=1.0)
         xy = poses[:, 4:6] + np.asarray(noise)
         quat = np.concatenate([poses[:, 3:4], poses[:, :3]], axis=1)
-        data = self.backend.reset(xy, quat)
-        self.episodes = list(episodes)
+        data = self.backend.reset(xy, quat, rows)
+        self.episodes = episodes
         self._target_rows[:] = -1
         for b, episode in enumerate(episodes):
             for s, step in enumerate(episode.chain):
@@ -133,6 +149,8 @@ class PartInstructEnv:
         info = {"steps": jnp.zeros(self.batch_size, jnp.int32), "step_limit": jnp.asarray(limits),
                 "truncated": jnp.zeros(self.batch_size, bool),
                 "joint_targets": jnp.asarray(data.arm_qpos, jnp.float32)}
+        if old is not None:
+            task, info = select_rows(rows, (task, info), (old.task, old.info))
         return _assemble(data, task, info, _outputs(data.for_jit(), task, info))
 
     def step(self, state: State, action) -> State:

@@ -150,6 +150,7 @@ def markdown(results: list[DemosResult], episodes: list[Episode], device: str, c
         "scene steps/s | clouds/s | wall s | simulation+oracle / clouds / writing / envs | compile s | "
         "cold demos/hour |\n"
         "|---|---|---|---|---|---|---|---|---|---|---|---|---|\n" + "\n".join(rows) + "\n\n"
-        "env steps/s counts each episode's own steps per second of simulation+oracle; scene steps/s counts every "
-        "scene the batch stepped (scenes whose episode ended keep stepping until the batch's last one ends, and "
-        "short batches are padded).\n")
+        "env steps/s counts each episode's own steps (those of its final demo or failure) per second of "
+        "simulation+oracle; scene steps/s counts every step a scene took for an episode, the tries that the "
+        "oracle's backtracking undid included (scenes are streamed: one whose episode ended takes the next; at the "
+        "end of an object's episodes the idle scenes are not counted).\n")

@@ -33,11 +33,13 @@ output (DIR):
 resume: every batch is committed atomically. Re-running the same command skips episodes already committed
 (successes and failures), so an interrupted run (Ctrl-C finalizes what was committed) continues where it stopped,
 and a larger --episodes adds only the new episodes. A directory remembers its backend, seed, sampler and
---oracle-tries and refuses different ones. The same episodes, --batch-size and --seed give the same demos.
+--oracle-tries and refuses different ones. The same episodes, --batch-size and --seed give the same demos, however
+often the run was interrupted (an episode's demo depends neither on its scene nor on the episodes beside it).
 
 speed: each object category and batch size compiles the oracle and the env step once per process (seconds to tens
 of seconds; JAX's persistent cache in ~/.cache/partinstruct_mjx/jax shortens later runs), so short runs are
-dominated by compiling. Episodes run per object, a batch of up to --batch-size at a time; the clouds of successful
+dominated by compiling. Episodes run per object, streamed through --batch-size scenes (a scene whose episode ended
+takes the next one) and committed every --batch-size finished episodes; the clouds of successful
 episodes cost about as much as the simulation ('stride' sampling; 'fps', the original's, is several times slower).
 `partinstruct bench demos` measures demos/hour on this machine.
 

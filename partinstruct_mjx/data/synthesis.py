@@ -1,14 +1,17 @@
-"""Demonstration synthesis: run the oracle on episodes in batches, render point clouds of the successes, store them.
+"""Demonstration synthesis: run the oracle on episodes, render point clouds of the successes, store them.
 
-`synthesize` groups episodes by object (one env per object and batch size, reused for all its batches; a group's
-short last batch runs in the next power-of-two size, padded by repeating episodes), runs `run_oracle`, renders the
-static camera's clouds of every successful episode's steps with the JAX point renderer and commits each batch
-to a `DemoWriter` run directory, so an interrupted run resumes where it stopped. `select_episodes` picks the
-episodes the CLI asks for (a count spread over task types and categories of a split, or a metadata file).
+`synthesize` groups episodes by object (one env per object, of `batch_size` scenes or the power of two that holds a
+smaller group), streams the object's episodes through it with `run_oracle` (a scene whose episode ended takes the
+next one), renders the static camera's clouds of every successful episode's steps with the JAX point renderer and
+commits every `batch_size` finished episodes to a `DemoWriter` run directory, so an interrupted run resumes where
+it stopped. `select_episodes` picks the episodes the CLI asks for (a count spread over task types and categories of
+a split, or a metadata file).
 
 Reproducibility: every random draw derives from the seed and the episode's own seed or ep_id (the oracle's and the
-clouds'), and an object's episodes are batched in ep_id order, so the same episodes with the same seed and sampler
-give the same demos however often the run was interrupted (the C backend steps each scene independently).
+clouds'), and the C backend steps each scene independently, so at one batch size an episode's demo depends
+neither on its scene nor on the episodes beside it: the same episodes with the same batch size, seed and sampler
+give the same demos however often the run was interrupted. (Another batch size can change the last bits of the
+oracle's float32 arithmetic, and with them a demo's details.)
 """
 
 from __future__ import annotations
@@ -53,7 +56,8 @@ def env_args(backend: str = "mujoco", sampler: str = "stride", seed: int = 0, or
             "env_kwargs": {"backend": backend, "skill_mode": False, "rotation": "euler", "control_freq": 20,
                            "step_limit": STEP_LIMIT, "step_limit_test4": STEP_LIMIT_TEST4},
             "synthesis": {"oracle": "partinstruct_mjx.oracle", "seed": seed,
-                          "oracle_tries": SEGMENT_TRIES if oracle_tries is None else oracle_tries, "pcd_sampler": sampler,
+                          "oracle_tries": SEGMENT_TRIES if oracle_tries is None else oracle_tries,
+                          "pcd_sampler": sampler,
                           "pcd_camera": "agentview", "pcd_size": 1024}}
 
 
@@ -115,28 +119,23 @@ def synthesize(episodes: list[Episode], out_dir: str | os.PathLike, batch_size: 
     bar = tqdm(total=len(todo), desc="demos", unit="episode", disable=not progress or not todo)
     try:
         for key, mine in groups.items():
-            workers: dict[int, _ObjectWorker] = {}
+            worker = _ObjectWorker(objects[key], _bucket(len(mine), batch_size), backend, num_threads, timing,
+                                   args["synthesis"]["oracle_tries"])
             try:
-                for batch, size in object_batches(mine, batch_size):
-                    if size not in workers:
-                        workers[size] = _ObjectWorker(objects[key], size, backend, num_threads, timing,
-                                                      args["synthesis"]["oracle_tries"])
-                    demos, failures, record = workers[size].run(batch, jax.random.PRNGKey(seed), sampler,
-                                                                render_chunk)
+                for demos, failures, record in worker.run(mine, jax.random.PRNGKey(seed), sampler, render_chunk):
                     tick = time.perf_counter()
                     writer.add(demos, failures)
                     record["write_s"] = time.perf_counter() - tick
                     timing.write_s += record["write_s"]
                     timing.batches.append(record)
-                    processed += len(batch)
+                    processed += record["episodes"]
                     successes += len(demos)
                     elapsed = time.perf_counter() - start
                     bar.set_postfix(demos_per_s=f"{successes / elapsed:.2f}", success=f"{successes / processed:.0%}",
                                     refresh=False)
-                    bar.update(len(batch))
+                    bar.update(record["episodes"])
             finally:
-                for worker in workers.values():
-                    worker.close()
+                worker.close()
     except KeyboardInterrupt:
         bar.close()
         writer.finalize()
@@ -216,61 +215,60 @@ class _ObjectWorker:
     def close(self) -> None:
         self.env.close()
 
-    def run(self, batch: list[Episode], key: jax.Array, sampler: str, chunk: int):
-        """Demos and failures of one batch (padded to the env's size by repeating its episodes) and its timings."""
+    def run(self, episodes: list[Episode], key: jax.Array, sampler: str, chunk: int):
+        """Stream one object's episodes through the env (a scene whose episode ended takes the next); yield the
+        demos, failures and timings of every `batch_size` finished episodes (the last chunk may be shorter)."""
         from partinstruct_mjx.data.demos import Demo
         from partinstruct_mjx.oracle.rollout import run_oracle
 
         rollout_key, cloud_key = jax.random.split(key)
-        padded = pad_batch(batch, self.batch_size)
+        finished, ended = [], 0
         tick = time.perf_counter()
-        rollout = run_oracle(self.env, padded, rollout_key, record=True, tries=self.oracle_tries)
-        rollout_s = time.perf_counter() - tick
-        self.timing.rollout_s += rollout_s
+        for episode in run_oracle(self.env, episodes, rollout_key, record=True, tries=self.oracle_tries):
+            finished.append(episode)
+            ended += 1
+            if len(finished) < self.batch_size and ended < len(episodes):
+                continue
+            rollout_s = time.perf_counter() - tick
+            self.timing.rollout_s += rollout_s
+            # A skill the oracle failed ends the episode; only an episode whose oracle never failed is a demo.
+            winners = [r for r in finished if r.success and r.failed_skill < 0 and r.length > 0]
+            tick = time.perf_counter()
+            clouds = self._clouds(winners, [episodes[r.index].ep_id for r in winners], cloud_key, sampler, chunk)
+            render_s = time.perf_counter() - tick
+            self.timing.render_s += render_s
+            demos = []
+            for r, cloud in zip(winners, clouds):
+                obs = {"agentview_pcd": cloud[..., :3], "agentview_part_pcd": cloud}
+                obs |= {name: r.obs[name] for name in ("tcp_pose", "joint_states", "gripper_state", "object_pose")}
+                state = r.initial_state if r.initial_state is not None else np.concatenate(
+                    [r.obs[name][0] for name in ("joint_states", "gripper_state", "object_pose")])
+                demos.append(Demo(episodes[r.index], r.actions, obs, r.skill_index, state))
+            failures = [(episodes[r.index], _failure_name(episodes[r.index], r.failed_skill, r.length))
+                        for r in finished if r not in winners]
+            record = {"object": episodes[0].obj_id, "category": category_slug(episodes[0].obj_class),
+                      "episodes": len(finished), "successes": len(demos),
+                      "steps": int(sum(r.length for r in finished)), "demo_steps": int(sum(r.length for r in winners)),
+                      "scene_steps": int(sum(r.simulated_steps for r in finished)),
+                      "env_s": self.env_s, "rollout_s": rollout_s, "render_s": render_s}
+            self.env_s = 0.0
+            yield demos, failures, record
+            finished = []
+            tick = time.perf_counter()
 
-        real = len(batch)
-        length = np.asarray(rollout.length[:real], int)
-        # A scene can keep being stepped after its episode ended (other scenes still run); task success latches, so
-        # only a scene whose oracle never failed counts as a success of its recorded prefix.
-        success = np.asarray(rollout.success[:real], bool) & (np.asarray(rollout.failed_skill[:real]) < 0)
-        winners = [b for b in range(real) if success[b] and length[b] > 0]
-        tick = time.perf_counter()
-        clouds = self._clouds(rollout, winners, length, [batch[b].ep_id for b in winners], cloud_key, sampler, chunk)
-        render_s = time.perf_counter() - tick
-        self.timing.render_s += render_s
-
-        initial = rollout.initial_state
-        demos = []
-        for b, cloud in zip(winners, clouds):
-            steps = length[b]
-            obs = {"agentview_pcd": cloud[..., :3], "agentview_part_pcd": cloud}
-            obs |= {name: rollout.obs[name][b, :steps] for name in ("tcp_pose", "joint_states", "gripper_state",
-                                                                    "object_pose")}
-            state = initial[b] if initial is not None else np.concatenate(
-                [rollout.obs[name][b, 0] for name in ("joint_states", "gripper_state", "object_pose")])
-            demos.append(Demo(batch[b], rollout.actions[b, :steps], obs, rollout.skill_index[b, :steps], state))
-        failures = [(batch[b], _failure_name(batch[b], int(rollout.failed_skill[b]), int(length[b])))
-                    for b in range(real) if b not in winners]
-        record = {"object": batch[0].obj_id, "category": category_slug(batch[0].obj_class), "episodes": real,
-                  "successes": len(demos), "steps": int(length.sum()),
-                  "demo_steps": int(sum(length[b] for b in winners)),
-                  "scene_steps": int(self.batch_size * rollout.simulated_steps),
-                  "env_s": self.env_s, "rollout_s": rollout_s, "render_s": render_s}
-        self.env_s = 0.0
-        return demos, failures, record
-
-    def _clouds(self, rollout, rows: list[int], length: np.ndarray, ep_ids: list[int], key: jax.Array,
-                sampler: str, chunk: int) -> list[np.ndarray]:
-        """(T_b, 1024, 4) agentview_part_pcd per row b in `rows`, rendered in fixed-size chunks of steps."""
+    def _clouds(self, runs: list, ep_ids: list[int], key: jax.Array, sampler: str,
+                chunk: int) -> list[np.ndarray]:
+        """(T, 1024, 4) agentview_part_pcd of each recorded OracleEpisode in `runs`, rendered in fixed-size chunks of
+        steps."""
         from partinstruct_mjx.obs import point_renderer
 
-        if not rows:
+        if not runs:
             return []
-        pos = np.concatenate([rollout.body_pos[b, :length[b]] for b in rows])
-        quat = np.concatenate([rollout.body_quat[b, :length[b]] for b in rows])
-        mask = np.concatenate([rollout.target_mask[b, :length[b]] for b in rows])
-        keys = np.concatenate([np.asarray(jax.random.split(jax.random.fold_in(key, ep_id), length[b]))
-                               for b, ep_id in zip(rows, ep_ids)])
+        pos = np.concatenate([r.body_pos for r in runs])
+        quat = np.concatenate([r.body_quat for r in runs])
+        mask = np.concatenate([r.target_mask for r in runs])
+        keys = np.concatenate([np.asarray(jax.random.split(jax.random.fold_in(key, ep_id), r.length))
+                               for r, ep_id in zip(runs, ep_ids)])
         out = []
         for first in range(0, len(pos), chunk):
             part = slice(first, first + chunk)
@@ -280,7 +278,7 @@ class _ObjectWorker:
                 jnp.asarray(_pad(mask[part], chunk)), jnp.asarray(_pad(keys[part], chunk)), sampler=sampler)
             out.append(np.concatenate([np.asarray(cloud.points)[:n], np.asarray(cloud.target)[:n, :, None]], -1))
         clouds = np.concatenate(out).astype(np.float32)
-        return np.split(clouds, np.cumsum([length[b] for b in rows])[:-1])
+        return np.split(clouds, np.cumsum([r.length for r in runs])[:-1])
 
 
 def _pad(rows: np.ndarray, size: int) -> np.ndarray:

@@ -50,6 +50,12 @@ class Backtracker:
         self.spent = np.where(rows, 0, self.spent)
         self.segment = np.where(rows, self.segment + 1, self.segment)
 
+    def start(self, rows: np.ndarray, state: State, oracle: machine.OracleState) -> None:
+        """Scenes where `rows` holds start a new episode (its first segment) now."""
+        self.save(rows, state, oracle, np.zeros_like(self.saved_steps))
+        self.segment = np.where(rows, 0, self.segment)
+        self.chosen[rows] = 0
+
     def retry(self, failed: np.ndarray, state: State, oracle: machine.OracleState):
         """Send the `failed` scenes that have tries left back to their segment's start. Returns the rows sent back,
         the new env state and machine state (the machine's random key folded with the try's number)."""

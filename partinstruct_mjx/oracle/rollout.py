@@ -1,15 +1,19 @@
-"""Run the oracle on a batch of episodes in a PartInstructEnv and record what a demonstration needs.
+"""Run the oracle on episodes in a PartInstructEnv and record what a demonstration needs.
 
 Demos use an env in task mode (the original generated its demos that way, spec 8.1): the oracle sequences the
 skills itself. In skill mode (evaluation) it follows the env's skill chain, so each skill is judged as the env
-judges it. A scene's episode ends at task success, at the env's step limit, when the oracle fails a skill, or when
-the oracle has executed the whole chain. Per step the recording keeps the action, the proprioception, the skill
-being executed and the compact state point clouds are rendered from later (body poses and the target-part mask).
+judges it. A scene's episode ends at task success, at the env's step limit, when the oracle fails a skill (and has
+no try left, backtrack.py), or when the oracle has executed the whole chain; the scene then takes the next episode
+(`PartInstructEnv.reset_rows`), so the batch stays full however long single episodes take. Per step the recording
+keeps the action, the proprioception, the skill being executed and the compact state point clouds are rendered
+from later (body poses and the target-part mask).
 """
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass
+from functools import partial
 
 import jax
 import jax.numpy as jnp
@@ -19,33 +23,42 @@ from partinstruct_mjx.env import PartInstructEnv, original_pose
 from partinstruct_mjx.errors import TaskError
 from partinstruct_mjx.obs import point_renderer
 from partinstruct_mjx.oracle import backtrack, machine
+from partinstruct_mjx.sim.state import select_rows
+from partinstruct_mjx.tasks import progress
 
 DONE_GRACE = 10
 """Steps a scene keeps stepping (the oracle holding its last command) after the oracle finished its chain."""
 
 _plan = jax.jit(machine.plan)
+PLAN_ALONE = 4
+"""Up to this many scenes asking for a plan in one step are planned one at a time: the planner's cost grows with
+the scenes it is given, and a batch-wide call plans every scene (a streamed batch's scenes start their skills at
+different steps, so most steps that plan need it for one scene)."""
 _act = jax.jit(machine.act, static_argnames="follow_env")
 
 
 @dataclass
-class OracleRollout:
-    """What a batch of oracle episodes did. Arrays are (B, T, ...) over the longest episode; `length` cuts each."""
+class OracleEpisode:
+    """What the oracle did in one episode. Arrays are (T, ...) over its `length` steps (empty without recording)."""
 
-    success: np.ndarray
-    length: np.ndarray
-    failed_skill: np.ndarray
-    """(B,) index of the chain skill that failed, -1 if none (a task that ran out of steps has -1 too)."""
+    index: int
+    """The episode's position in the list given to `run_oracle`."""
+    success: bool
+    length: int
+    failed_skill: int
+    """Index of the chain skill that failed, -1 if none (a task that ran out of steps has -1 too)."""
+    segment_tries: np.ndarray
+    """(S,) the try that stood for each grasp or touch segment (0 = the first; backtrack.py)."""
+    simulated_steps: int
+    """Steps its scene was simulated for it, the undone tries included."""
+    initial_state: np.ndarray | None
+    """MuJoCo physics state after its reset (mujoco backend), for exact replay."""
     actions: np.ndarray
     skill_index: np.ndarray
     obs: dict[str, np.ndarray]
     body_pos: np.ndarray
     body_quat: np.ndarray
     target_mask: np.ndarray
-    initial_state: np.ndarray | None
-    segment_tries: np.ndarray
-    """(B, S) the try that stood for each grasp or touch segment (0 = the first; backtrack.py)."""
-    simulated_steps: int
-    """Steps the batch was simulated, the undone tries included."""
 
 
 @jax.jit
@@ -75,14 +88,20 @@ class OraclePolicy:
         self._copy: PartInstructEnv | None = None
 
     def reset(self, env: PartInstructEnv, state, key: jax.Array) -> None:
-        keys = jnp.stack([jax.random.fold_in(key, e.ep_id if e.seed is None else e.seed % 2**31)
-                          for e in env.episodes])
-        self.state = machine.init(machine.compile_chains(env.episodes, env.part_names), state.data, env.geometry, keys)
+        self.state = _initial_machine(env, state, key)
         if self.lookahead_tries > 1:
-            self._choices = run_oracle(self._private_copy(env), env.episodes, key, record=False,
-                                       tries=self.lookahead_tries).segment_tries
+            self._choices = np.zeros((env.batch_size, progress.MAX_SKILLS), np.int32)
+            for episode in run_oracle(self._private_copy(env), env.episodes, key, record=False,
+                                      tries=self.lookahead_tries):
+                self._choices[episode.index] = episode.segment_tries
             self._segment = np.zeros(env.batch_size, np.int32)
             self.state = backtrack.with_try(self.state, self._choices[:, 0])
+
+    def reset_rows(self, env: PartInstructEnv, state, key: jax.Array, rows: np.ndarray) -> None:
+        """New episodes in the scenes of `rows` (after `env.reset_rows`); without look-ahead only."""
+        if self._choices is not None:
+            raise TaskError("reset_rows is not available with lookahead_tries > 1")
+        self.state = select_rows(rows, _initial_machine(env, state, key), self.state)
 
     def close(self) -> None:
         """Close the private copy of the env (lookahead only)."""
@@ -102,9 +121,15 @@ class OraclePolicy:
         """(B, 7) Euler actions for this step (plans first where a scene needs a grasp or touch pose)."""
         if self.state is None:
             raise TaskError("OraclePolicy.act was called before reset")
-        if bool(np.asarray(self.state.needs_plan).any()):
+        need = np.flatnonzero(np.asarray(self.state.needs_plan))
+        if len(need) > PLAN_ALONE:
             self.state = _plan(self.state, state.data.for_jit(), env.geometry, env.kinematics,
                                state.info["joint_targets"])
+        for b in need if len(need) <= PLAN_ALONE else ():
+            row = partial(_rows, slice(b, b + 1))
+            planned = _plan(row(self.state), row(state.data.for_jit()), env.geometry, env.kinematics,
+                            row(state.info["joint_targets"]))
+            self.state = jax.tree.map(lambda whole, one, b=b: whole.at[b].set(one[0]), self.state, planned)
         before = self.state
         self.state, action = _act(self.state, state.data.for_jit(), state.task, env.geometry, env.config.skill_mode)
         if self._choices is not None:
@@ -116,79 +141,108 @@ class OraclePolicy:
         return action
 
 
-def run_oracle(env: PartInstructEnv, episodes: list, key: jax.Array, record: bool = True,
-               tries: int = backtrack.SEGMENT_TRIES) -> OracleRollout:
-    """Reset `env` to `episodes`, let the oracle act until every scene's episode has ended, return the recording.
+def _rows(rows: slice, tree):
+    """Those rows of every array of a pytree."""
+    return jax.tree.map(lambda x: x[rows], tree)
 
-    `success` is each scene's task success at the step its episode ended. The oracle's random draws come from
-    `key` folded with each episode's seed, so a scene's demo does not depend on the batch it runs in. A failed
-    grasp or touch and what follows it is tried up to `tries` times from the state before it (backtrack.py); the
-    recording holds each scene's steps from its start along the tries that stood.
+
+def _initial_machine(env: PartInstructEnv, state, key: jax.Array) -> machine.OracleState:
+    """Machine state at the start of every scene's episode; keys from `key` folded with each episode's seed."""
+    keys = jnp.stack([jax.random.fold_in(key, e.ep_id if e.seed is None else e.seed % 2**31) for e in env.episodes])
+    return machine.init(machine.compile_chains(env.episodes, env.part_names), state.data, env.geometry, keys)
+
+
+def run_oracle(env: PartInstructEnv, episodes: list, key: jax.Array, record: bool = True,
+               tries: int = backtrack.SEGMENT_TRIES) -> Iterator[OracleEpisode]:
+    """Run `episodes` (any number) through `env`'s scenes and yield each one's `OracleEpisode` as it ends.
+
+    The first B episodes start at reset (fewer fill the batch by repeating, and the repeats are not reported); a
+    scene whose episode ended takes the next one. `success` is the task success at the step the episode ended. The
+    oracle's random draws come from `key` folded with each episode's seed, so at one batch size an episode's outcome
+    depends neither on its scene nor on the episodes beside it (tests/test_oracle.py). A failed grasp or touch and what follows it is tried up to `tries` times from the state
+    before it (backtrack.py); the recording holds the episode's steps along the tries that stood.
     """
-    state = env.reset(key, episodes)
-    initial_state = env.backend.get_physics_state() if hasattr(env.backend, "get_physics_state") else None
+    batch = env.batch_size
+    pending = list(enumerate(episodes))
+    first = pending[:batch]
+    owner = np.array([i for i, _ in first] + [-1] * (batch - len(first)))
+    state = env.reset(key, [first[b % len(first)][1] for b in range(batch)])
+    get_physics = getattr(env.backend, "get_physics_state", None)
+    initial = get_physics() if get_physics else None
+    del pending[:batch]
     policy = OraclePolicy()
     policy.reset(env, state, key)
     search = backtrack.Backtracker(env, state, policy.state, tries)
     surface = point_renderer.surface_points(env.scene, env.geometry) if record else None
-    batch = env.batch_size
-    limit = int(np.max(np.asarray(state.info["step_limit"])))
-    ended = np.zeros(batch, bool)
-    success = np.zeros(batch, bool)
     length = np.zeros(batch, np.int32)
+    simulated = np.zeros(batch, np.int32)
     done_for = np.zeros(batch, np.int32)
-    frames: list[dict] = []
-    # timeline[b, t]: the frame that holds step t of scene b's demonstration.
-    timeline = np.zeros((batch, limit * tries), np.int32)
-    for frame in range(limit * tries):
-        timeline[np.arange(batch), length] = frame
+    steps: list[list[dict]] = [[] for _ in range(batch)]
+    while (owner >= 0).any():
+        active = owner >= 0
         if record:
-            frames.append({"obs": {k: np.asarray(v) for k, v in state.obs.items() if k != "instruction_index"},
-                           "object_pose": np.asarray(original_pose(state.data.object_quat, state.data.object_pos)),
-                           "body_pos": np.asarray(state.data.body_pos, np.float32),
-                           "body_quat": np.asarray(state.data.body_quat, np.float32),
-                           "target_mask": np.asarray(_target_masks(policy.state, surface, env.geometry)),
-                           "skill": _chain_index(policy.state)})
+            frame = {"obs": {k: np.asarray(v) for k, v in state.obs.items() if k != "instruction_index"},
+                     "object_pose": np.asarray(original_pose(state.data.object_quat, state.data.object_pos)),
+                     "body_pos": np.asarray(state.data.body_pos, np.float32),
+                     "body_quat": np.asarray(state.data.body_quat, np.float32),
+                     "target_mask": np.asarray(_target_masks(policy.state, surface, env.geometry)),
+                     "skill": _chain_index(policy.state)}
         before = policy.state
         action = policy.act(env, state)
         if record:
-            frames[-1]["action"] = np.asarray(action)
+            frame["action"] = np.asarray(action)
+            for b in np.flatnonzero(active):
+                steps[b].append(jax.tree.map(lambda x, b=b: x[b], frame))
         state = env.step(state, action)
-        length += ~ended
+        length += active
+        simulated += active
         oracle = policy.state
         # The env judges the last skill one step after the oracle did: it gets DONE_GRACE steps to agree.
         done_for = np.where(np.asarray(oracle.skill) == machine.DONE, done_for + 1, 0)
-        now = np.asarray(state.done) | np.asarray(oracle.failed) | (done_for > DONE_GRACE)
-        success = np.where(ended, success, np.asarray(state.task.success))
-        retried, state, policy.state = search.retry(now & ~success & ~ended, state, oracle)
+        now = active & (np.asarray(state.done) | np.asarray(oracle.failed) | (done_for > DONE_GRACE))
+        success = np.asarray(state.task.success)
+        retried, state, policy.state = search.retry(now & ~success, state, oracle)
+        for b in np.flatnonzero(retried):
+            del steps[b][search.saved_steps[b]:]
         length = np.where(retried, search.saved_steps, length)
         done_for = np.where(retried, 0, done_for)
-        search.save(backtrack.segment_starts(before, policy.state) & ~now & ~ended, state, policy.state, length)
-        ended |= now & ~retried
-        if ended.all():
-            break
-    # Past its end a scene's recording repeats its last step (consumers cut at `length`).
-    rows = np.take_along_axis(timeline, np.minimum(np.arange(length.max()), length[:, None] - 1), axis=1)
-    return OracleRollout(
-        success=success, length=length, failed_skill=np.asarray(policy.state.failed_skill),
-        actions=_gather(frames, "action", rows), skill_index=_gather(frames, "skill", rows),
-        obs={k: _gather([f["obs"] for f in frames], k, rows) for k in (frames[0]["obs"] if frames else {})}
-        | ({"object_pose": _gather(frames, "object_pose", rows)} if frames else {}),
-        body_pos=_gather(frames, "body_pos", rows), body_quat=_gather(frames, "body_quat", rows),
-        target_mask=_gather(frames, "target_mask", rows), initial_state=initial_state,
-        segment_tries=search.chosen, simulated_steps=frame + 1)
+        search.save(backtrack.segment_starts(before, policy.state) & active & ~now, state, policy.state, length)
+        ended = now & ~retried
+        for b in np.flatnonzero(ended):
+            yield _episode(int(owner[b]), bool(success[b]), int(length[b]), int(policy.state.failed_skill[b]),
+                           search.chosen[b].copy(), int(simulated[b]), None if initial is None else initial[b].copy(),
+                           steps[b])
+        owner[ended] = -1
+        free = np.flatnonzero(owner < 0)[:len(pending)]
+        if len(free):
+            rows = np.isin(np.arange(batch), free)
+            state = env.reset_rows(state, key, rows, [e for _, e in pending[:len(free)]])
+            owner[free] = [i for i, _ in pending[:len(free)]]
+            del pending[:len(free)]
+            policy.reset_rows(env, state, key, rows)
+            search.start(rows, state, policy.state)
+            if get_physics:
+                initial[free] = get_physics()[free]
+            length[free] = simulated[free] = done_for[free] = 0
+            for b in free:
+                steps[b] = []
+
+
+def _episode(index: int, success: bool, length: int, failed_skill: int, segment_tries: np.ndarray,
+             simulated: int, initial_state, steps: list[dict]) -> OracleEpisode:
+    """An OracleEpisode from its recorded steps (one dict per step, as run_oracle records them)."""
+    stacked = jax.tree.map(lambda *xs: np.stack(xs), *steps) if steps else None
+    empty = np.zeros((0,))
+    return OracleEpisode(
+        index=index, success=success, length=length, failed_skill=failed_skill, segment_tries=segment_tries,
+        simulated_steps=simulated, initial_state=initial_state,
+        actions=stacked["action"] if stacked else empty, skill_index=stacked["skill"] if stacked else empty,
+        obs=(stacked["obs"] | {"object_pose": stacked["object_pose"]}) if stacked else {},
+        body_pos=stacked["body_pos"] if stacked else empty, body_quat=stacked["body_quat"] if stacked else empty,
+        target_mask=stacked["target_mask"] if stacked else empty)
 
 
 def _chain_index(oracle: machine.OracleState) -> np.ndarray:
     """(B,) the skill being executed; the chain's last skill once the oracle is DONE (waiting for the env)."""
     skill = np.asarray(oracle.skill)
     return np.where(skill == machine.DONE, np.asarray(oracle.num_skills) - 1, skill)
-
-
-def _gather(frames: list[dict], name: str, timeline: np.ndarray) -> np.ndarray:
-    """(B, T, ...) scene b's `name` at the frames `timeline[b]` (B, T)."""
-    if not frames:
-        return np.zeros((0,))
-    stacked = np.stack([f[name] for f in frames], 1)
-    return stacked[np.arange(stacked.shape[0])[:, None], timeline]
-

@@ -37,8 +37,9 @@ class MjxBackend:
     def close(self) -> None:
         """Nothing to release (kept for interface parity with MujocoBackend)."""
 
-    def reset(self, object_xy=None, object_quat=None) -> SceneState:
-        """Robot at home, objects placed as given, then `settle_steps` control steps on the device (spec 1.4b)."""
+    def reset(self, object_xy=None, object_quat=None, rows: np.ndarray | None = None) -> SceneState:
+        """Robot at home, objects placed as given, then `settle_steps` control steps on the device (spec 1.4b).
+        With a (B,) bool `rows`, only those environments take the new state; the others keep theirs."""
         qpos, act = initial_positions(self.scene, self.batch_size, object_xy, object_quat)
         ctrl = np.tile(panda.HOME_CTRL, (self.batch_size, 1))
         data = jax.vmap(lambda q, a, c: self._fresh.replace(qpos=q, act=a, ctrl=c))(
@@ -46,8 +47,8 @@ class MjxBackend:
         data = _forward(self.model, data)
         for _ in range(self.scene.config.settle_steps):
             data = _step(self.model, data, jnp.asarray(ctrl), self.scene.config.substeps)
-        self.data = data
-        return _extract(self.model, data, self._indices)
+        self.data = data if rows is None or self.data is None else select_rows(np.asarray(rows), data, self.data)
+        return _extract(self.model, self.data, self._indices)
 
     def step(self, ctrl) -> SceneState:
         """Apply actuator targets (B, 8) for one control step."""

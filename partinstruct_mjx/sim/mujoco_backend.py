@@ -58,23 +58,27 @@ class MujocoBackend:
     def __exit__(self, *exc) -> None:
         self.close()
 
-    def reset(self, object_xy: np.ndarray | None = None, object_quat: np.ndarray | None = None) -> SceneState:
+    def reset(self, object_xy: np.ndarray | None = None, object_quat: np.ndarray | None = None,
+              rows: np.ndarray | None = None) -> SceneState:
         """Put the robot at home, drop the object at (x, y) with orientation `object_quat` and let it settle.
 
         Args:
           object_xy: (B, 2) object positions on the table; default (0, -0.03) (spec 1.4 example poses).
           object_quat: (B, 4) object orientations (w, x, y, z); default identity.
+          rows: (B,) bool: reset only these environments (the others are neither reset nor stepped); default all.
         Returns:
           The SceneState after `config.settle_steps` control steps with the robot held at home (spec 1.4b).
         """
         qpos, act = initial_positions(self.scene, self.batch_size, object_xy, object_quat)
-        for i, data in enumerate(self.datas):
+        chosen = np.arange(self.batch_size) if rows is None else np.flatnonzero(rows)
+        for i in chosen:
+            data = self.datas[i]
             mujoco.mj_resetData(self.model, data)
             data.qpos[:], data.act[:], data.ctrl[:] = qpos[i], act[i], panda.HOME_CTRL
             mujoco.mj_forward(self.model, data)
-        self._ctrl[:] = panda.HOME_CTRL
+        self._ctrl[chosen] = panda.HOME_CTRL
         for _ in range(self.scene.config.settle_steps):
-            self._run(self._step_chunk)
+            self._run(self._step_chunk, chosen)
         return self._run(self._extract_chunk)
 
     def step(self, ctrl: np.ndarray) -> SceneState:
@@ -122,11 +126,13 @@ class MujocoBackend:
 
     # --- workers -------------------------------------------------------------------------------------------
 
-    def _run(self, work) -> SceneState:
+    def _run(self, work, only: np.ndarray | None = None) -> SceneState:
+        """`work` on every environment (or on those in `only`), each thread on its fixed chunk."""
+        chunks = self._chunks if only is None else [c[np.isin(c, only)] for c in self._chunks]
         if self._pool is None:
-            work(self._chunks[0])
+            work(chunks[0])
         else:
-            for future in [self._pool.submit(work, chunk) for chunk in self._chunks]:
+            for future in [self._pool.submit(work, chunk) for chunk in chunks if len(chunk)]:
                 future.result()
         return self._state.replace()
 
