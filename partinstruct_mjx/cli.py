@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import itertools
 import sys
 import time
 from pathlib import Path
@@ -85,6 +86,9 @@ def main(argv: list[str] | None = None) -> int:
     bench.add_argument("--backend", choices=["mujoco", "mjx"], default="mujoco",
                        help="demos and eval suites: physics backend (default mujoco; mjx on a GPU)")
     bench.add_argument("--threads", type=int, default=None, help="worker threads/processes (default: all cores)")
+    bench.add_argument("--oracle-tries", type=int, nargs="+", default=None, metavar="N",
+                       help="demos suite: the oracle's tries per grasp or touch to measure, side by side (default: "
+                            "the default of `partinstruct demos`, 4)")
     bench.add_argument("--output", type=Path, default=DEFAULT_BENCH_OUTPUT,
                        help=f"markdown file to update (default {DEFAULT_BENCH_OUTPUT}); '-' prints only")
     bench.set_defaults(func=_bench)
@@ -265,14 +269,16 @@ def _bench_demos(args) -> str:
 
     from partinstruct_mjx.bench import demos
     from partinstruct_mjx.jax_setup import enable_compilation_cache
+    from partinstruct_mjx.oracle.backtrack import SEGMENT_TRIES
 
     cache = enable_compilation_cache()
     episodes = demos.bench_episodes(args.episodes or 64)
     results = []
-    for batch in args.batch_sizes or [16]:
-        result = demos.measure(episodes, batch, args.repeats, args.threads, backend=args.backend)
+    for batch, tries in itertools.product(args.batch_sizes or [16], args.oracle_tries or [SEGMENT_TRIES]):
+        result = demos.measure(episodes, batch, args.repeats, args.threads, backend=args.backend, oracle_tries=tries)
         results.append(result)
-        print(f"batch {batch:>3}: {result.demos_per_hour:>9,.0f} demos/hour, {result.episodes_per_s:.2f} episodes/s, "
+        print(f"batch {batch:>3}, oracle tries {tries}: {result.demos_per_hour:>9,.0f} demos/hour, "
+              f"{result.episodes_per_s:.2f} episodes/s, "
               f"{result.env_steps_per_s:,.0f} env steps/s, oracle success {result.successes}/{result.episodes}, "
               f"compile {result.compile_s:.1f} s")
     device = f"{jax.default_backend()} ({jax.devices()[0].device_kind})"
