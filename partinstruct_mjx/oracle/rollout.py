@@ -11,6 +11,7 @@ from later (body poses and the target-part mask).
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Iterator
 from dataclasses import dataclass
 from functools import partial
@@ -159,8 +160,9 @@ def run_oracle(env: PartInstructEnv, episodes: list, key: jax.Array, record: boo
     The first B episodes start at reset (fewer fill the batch by repeating, and the repeats are not reported); a
     scene whose episode ended takes the next one. `success` is the task success at the step the episode ended. The
     oracle's random draws come from `key` folded with each episode's seed, so at one batch size an episode's outcome
-    depends neither on its scene nor on the episodes beside it (tests/test_oracle.py). A failed grasp or touch and what follows it is tried up to `tries` times from the state
-    before it (backtrack.py); the recording holds the episode's steps along the tries that stood.
+    depends neither on its scene nor on the episodes beside it (tests/test_oracle.py). A failed grasp or touch and
+    what follows it is tried up to `tries` times from the state before it (backtrack.py); the recording holds the
+    episode's steps along the tries that stood.
     """
     batch = env.batch_size
     pending = list(enumerate(episodes))
@@ -177,9 +179,14 @@ def run_oracle(env: PartInstructEnv, episodes: list, key: jax.Array, record: boo
     length = np.zeros(batch, np.int32)
     simulated = np.zeros(batch, np.int32)
     done_for = np.zeros(batch, np.int32)
-    steps: list[list[dict]] = [[] for _ in range(batch)]
-    while (owner >= 0).any():
+    # The batch's recorded steps by number, and each scene's step numbers along the tries that stood.
+    frames: dict[int, dict] = {}
+    steps: list[list[int]] = [[] for _ in range(batch)]
+    first_frame = np.zeros(batch, np.int64)
+    for number in itertools.count():
         active = owner >= 0
+        if not active.any():
+            return
         if record:
             frame = {"obs": {k: np.asarray(v) for k, v in state.obs.items() if k != "instruction_index"},
                      "object_pose": np.asarray(original_pose(state.data.object_quat, state.data.object_pos)),
@@ -191,8 +198,9 @@ def run_oracle(env: PartInstructEnv, episodes: list, key: jax.Array, record: boo
         action = policy.act(env, state)
         if record:
             frame["action"] = np.asarray(action)
+            frames[number] = frame
             for b in np.flatnonzero(active):
-                steps[b].append(jax.tree.map(lambda x, b=b: x[b], frame))
+                steps[b].append(number)
         state = env.step(state, action)
         length += active
         simulated += active
@@ -211,7 +219,7 @@ def run_oracle(env: PartInstructEnv, episodes: list, key: jax.Array, record: boo
         for b in np.flatnonzero(ended):
             yield _episode(int(owner[b]), bool(success[b]), int(length[b]), int(policy.state.failed_skill[b]),
                            search.chosen[b].copy(), int(simulated[b]), None if initial is None else initial[b].copy(),
-                           steps[b])
+                           [frames[n] for n in steps[b]], b)
         owner[ended] = -1
         free = np.flatnonzero(owner < 0)[:len(pending)]
         if len(free):
@@ -224,14 +232,17 @@ def run_oracle(env: PartInstructEnv, episodes: list, key: jax.Array, record: boo
             if get_physics:
                 initial[free] = get_physics()[free]
             length[free] = simulated[free] = done_for[free] = 0
+            first_frame[free] = number + 1
             for b in free:
                 steps[b] = []
+        for old in [n for n in frames if n < first_frame[owner >= 0].min(initial=number + 1)]:
+            del frames[old]
 
 
 def _episode(index: int, success: bool, length: int, failed_skill: int, segment_tries: np.ndarray,
-             simulated: int, initial_state, steps: list[dict]) -> OracleEpisode:
-    """An OracleEpisode from its recorded steps (one dict per step, as run_oracle records them)."""
-    stacked = jax.tree.map(lambda *xs: np.stack(xs), *steps) if steps else None
+             simulated: int, initial_state, frames: list[dict], row: int) -> OracleEpisode:
+    """An OracleEpisode from the batch frames of its steps (as run_oracle records them) and its scene's row."""
+    stacked = jax.tree.map(lambda *xs: np.stack([x[row] for x in xs]), *frames) if frames else None
     empty = np.zeros((0,))
     return OracleEpisode(
         index=index, success=success, length=length, failed_skill=failed_skill, segment_tries=segment_tries,
