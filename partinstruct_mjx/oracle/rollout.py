@@ -164,6 +164,8 @@ def run_oracle(env: PartInstructEnv, episodes: list, key: jax.Array, record: boo
     what follows it is tried up to `tries` times from the state before it (backtrack.py); the recording holds the
     episode's steps along the tries that stood.
     """
+    if not episodes:
+        return
     batch = env.batch_size
     pending = list(enumerate(episodes))
     first = pending[:batch]
