@@ -111,6 +111,8 @@ def test_other_settings_are_refused_for_an_existing_directory(metadata, run_dir,
     before = sorted(p.relative_to(run_dir) for p in run_dir.rglob("*"))
     assert demos(metadata, run_dir, 2, "--seed", "1") == 2
     assert "env_args" in capsys.readouterr().err
+    assert demos(metadata, run_dir, 2, "--oracle-tries", "1") == 2  # the run used the default, 4
+    assert "env_args" in capsys.readouterr().err
     # refused before anything is written, also the episode selection a run without --metadata keeps
     assert main(["demos", "--episodes", "2", "--seed", "1", "--out", str(run_dir), "--quiet"]) == 2
     assert "env_args" in capsys.readouterr().err
@@ -157,7 +159,8 @@ def test_generated_selection_is_remembered_in_the_run_directory(tmp_path, monkey
 
 @pytest.mark.parametrize("args, message", [(["--split", "test9"], "unknown split"),
                                            (["--types", "12"], "not in split train"),
-                                           (["--categories", "teapot"], "unknown category")])
+                                           (["--categories", "teapot"], "unknown category"),
+                                           (["--oracle-tries", "0"], "--oracle-tries must be >= 1")])
 def test_bad_input_exits_2(tmp_path, capsys, args, message):
     assert main(["demos", "--out", str(tmp_path / "out"), *args]) == 2
     assert message in capsys.readouterr().err

@@ -206,6 +206,7 @@ def test_oracle_planner_starts_at_the_first_skill(metadata):
     (["--planner-every", "4"], "--planner-every needs --planner"),
     (["--batch-size", "0"], "batch_size must be >= 1"),
     (["--episodes-per-split", "0"], "episodes_per_split must be >= 1"),
+    (["--oracle-tries", "0"], "oracle_tries must be >= 1"),
 ])
 def test_bad_arguments_are_named(tmp_path, capsys, argv, message):
     args = ["eval", "--policy", "oracle", "--out", str(tmp_path / "out"), "--quiet", *argv]

@@ -359,3 +359,7 @@ def test_streamed_episodes_match_their_single_runs(episodes):
         assert (s.success, s.length, s.failed_skill) == (a.success, a.length, a.failed_skill)
         np.testing.assert_array_equal(s.actions, a.actions)
         np.testing.assert_array_equal(s.initial_state, a.initial_state)
+
+
+def test_no_episodes_yield_nothing():
+    assert list(run_oracle(None, [], jax.random.PRNGKey(0))) == []

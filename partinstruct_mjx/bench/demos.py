@@ -81,7 +81,7 @@ class DemosResult:
 
     @property
     def scene_steps_per_s(self) -> float:
-        """Steps of every scene the env stepped (padding, and scenes whose episode had ended) per second."""
+        """Steps the scenes took for their episodes (backtracking's undone tries included) per second."""
         return self._median(lambda r: sum(b["scene_steps"] for b in r["timing"]["batches"]) / r["timing"]["rollout_s"])
 
     @property
@@ -109,9 +109,8 @@ def measure(episodes: list[Episode], batch_size: int, repeats: int, threads: int
     is `partinstruct demos`' default)."""
     import jax
 
-    from partinstruct_mjx.oracle.backtrack import SEGMENT_TRIES
-
     from partinstruct_mjx.data.synthesis import synthesize
+    from partinstruct_mjx.oracle.backtrack import SEGMENT_TRIES
 
     runs = []
     with tempfile.TemporaryDirectory(prefix="partinstruct-bench-demos-") as tmp:
@@ -158,6 +157,6 @@ def markdown(results: list[DemosResult], episodes: list[Episode], device: str, c
         "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n" + "\n".join(rows) + "\n\n"
         "env steps/s counts each episode's own steps (those of its final demo or failure) per second of "
         "simulation+oracle; 'oracle tries' are its tries per grasp or touch (1: no backtracking; "
-        "`partinstruct demos --oracle-tries`); scene steps/s counts every step a scene took for an episode, the tries that the "
-        "oracle's backtracking undid included (scenes are streamed: one whose episode ended takes the next; at the "
-        "end of an object's episodes the idle scenes are not counted).\n")
+        "`partinstruct demos --oracle-tries`); scene steps/s counts every step a scene took for an episode, the "
+        "tries that the oracle's backtracking undid included (scenes are streamed: one whose episode ended takes "
+        "the next; at the end of an object's episodes the idle scenes are not counted).\n")

@@ -232,7 +232,8 @@ class _ObjectWorker:
             rollout_s = time.perf_counter() - tick
             self.timing.rollout_s += rollout_s
             # A skill the oracle failed ends the episode; only an episode whose oracle never failed is a demo.
-            winners = [r for r in finished if r.success and r.failed_skill < 0 and r.length > 0]
+            is_demo = [r.success and r.failed_skill < 0 and r.length > 0 for r in finished]
+            winners = [r for r, demo in zip(finished, is_demo) if demo]
             tick = time.perf_counter()
             clouds = self._clouds(winners, [episodes[r.index].ep_id for r in winners], cloud_key, sampler, chunk)
             render_s = time.perf_counter() - tick
@@ -245,7 +246,7 @@ class _ObjectWorker:
                     [r.obs[name][0] for name in ("joint_states", "gripper_state", "object_pose")])
                 demos.append(Demo(episodes[r.index], r.actions, obs, r.skill_index, state))
             failures = [(episodes[r.index], _failure_name(episodes[r.index], r.failed_skill, r.length))
-                        for r in finished if r not in winners]
+                        for r, demo in zip(finished, is_demo) if not demo]
             record = {"object": episodes[0].obj_id, "category": category_slug(episodes[0].obj_class),
                       "episodes": len(finished), "successes": len(demos),
                       "steps": int(sum(r.length for r in finished)), "demo_steps": int(sum(r.length for r in winners)),

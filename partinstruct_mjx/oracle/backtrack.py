@@ -37,7 +37,8 @@ class Backtracker:
         self.spent = np.zeros(batch, np.int32)
         self.segment = np.zeros(batch, np.int32)
         self.chosen = np.zeros((batch, progress.MAX_SKILLS), np.int32)
-        """(B, S) the try (0 = the first) that stands for each segment so far: `follow` replays these choices."""
+        """(B, S) the try (0 = the first) that stands for each segment so far (`OraclePolicy`'s look-ahead makes
+        the same choices in the evaluated env)."""
 
     def save(self, rows: np.ndarray, state: State, oracle: machine.OracleState, steps: np.ndarray) -> None:
         """Scenes where `rows` holds start a segment now (`steps` into their demonstration)."""

@@ -74,7 +74,7 @@ class OraclePolicy:
     """The oracle as a policy (the evaluator's `reset`/`act` interface): it reads privileged information (the
     episodes' chains, part geometry, the physics state) and ignores instructions. In a skill-mode env it follows the
     env's skill chain. Its random draws come from the reset key folded with each episode's seed, so an episode's
-    actions do not depend on its batch.
+    actions do not depend on the other episodes of its batch.
 
     With `lookahead_tries` > 1 it plans each batch first in a private copy of the env (same object, batch and
     config, reset with the same key): `run_oracle` there backtracks failed grasps and touches (backtrack.py), and
@@ -122,17 +122,17 @@ class OraclePolicy:
         """(B, 7) Euler actions for this step (plans first where a scene needs a grasp or touch pose)."""
         if self.state is None:
             raise TaskError("OraclePolicy.act was called before reset")
+        data, joints = state.data.for_jit(), state.info["joint_targets"]
         need = np.flatnonzero(np.asarray(self.state.needs_plan))
         if len(need) > PLAN_ALONE:
-            self.state = _plan(self.state, state.data.for_jit(), env.geometry, env.kinematics,
-                               state.info["joint_targets"])
-        for b in need if len(need) <= PLAN_ALONE else ():
-            row = partial(_rows, slice(b, b + 1))
-            planned = _plan(row(self.state), row(state.data.for_jit()), env.geometry, env.kinematics,
-                            row(state.info["joint_targets"]))
-            self.state = jax.tree.map(lambda whole, one, b=b: whole.at[b].set(one[0]), self.state, planned)
+            self.state = _plan(self.state, data, env.geometry, env.kinematics, joints)
+        else:
+            for b in need:
+                row = partial(_rows, slice(b, b + 1))
+                planned = _plan(row(self.state), row(data), env.geometry, env.kinematics, row(joints))
+                self.state = jax.tree.map(lambda whole, one, b=b: whole.at[b].set(one[0]), self.state, planned)
         before = self.state
-        self.state, action = _act(self.state, state.data.for_jit(), state.task, env.geometry, env.config.skill_mode)
+        self.state, action = _act(self.state, data, state.task, env.geometry, env.config.skill_mode)
         if self._choices is not None:
             starts = backtrack.segment_starts(before, self.state)
             if starts.any():
