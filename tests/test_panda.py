@@ -56,7 +56,13 @@ def test_collision_set_arm_only_table_gripper_table_and_object():
         else:
             assert (model.geom_contype[g], model.geom_conaffinity[g]) == (4, 1)
     pads = [model.geom(g).name for g in colliding if "pad" in model.geom(g).name]
-    assert len(pads) == 4 and all(model.geom(p).type == mujoco.mjtGeom.mjGEOM_CAPSULE for p in pads)
+    assert sorted(pads) == ["left_pad", "right_pad"]
+    for name in pads:
+        pad = model.geom(name)
+        assert pad.type == mujoco.mjtGeom.mjGEOM_BOX
+        # Flat inner face on the finger's closing plane, reaching the fingertip (5.3 cm from the finger's base).
+        np.testing.assert_allclose(pad.pos[1] - pad.size[1], 0.0, atol=1e-9)
+        np.testing.assert_allclose(pad.pos[2] + pad.size[2], 0.053, atol=1e-9)
 
 
 def test_wrist_camera_looks_along_the_approach_axis():

@@ -48,7 +48,7 @@ def test_parts_never_collide_with_each_other_or_the_arm(scene):
     assert not collides(body, lid)
     arm_link = model.geom(next(g for g in range(model.ngeom) if model.geom_bodyid[g] == model.body("panda_link4").id
                                and model.geom_contype[g])).id
-    pad = model.geom("left_pad_a").id
+    pad = model.geom("left_pad").id
     table = scene.table_geom
     assert collides(body, table) and collides(body, pad) and collides(arm_link, table)
     assert not collides(body, arm_link) and not collides(pad, arm_link)
@@ -58,7 +58,7 @@ def test_geom_names_round_trip():
     assert geom_name("containing things", "col", 3) == "containing_things/col3"
     assert parse_geom_name("object/containing_things/col3") == ("containing things", "col")
     assert parse_geom_name("object/lid/vis0") == ("lid", "vis")
-    assert parse_geom_name("left_pad_a") is None
+    assert parse_geom_name("left_pad") is None
 
 
 def _write(tmp_path, body: str):
