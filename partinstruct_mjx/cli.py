@@ -252,7 +252,13 @@ def _bench(args) -> int:
         title = f"{args.suite}_{device.lower().replace(' ', '_')}" if gpu else args.suite
         name = "Demonstration synthesis" if args.suite == "demos" else "Evaluation"
         heading = f"{name} ({device})" if gpu else name
-        table = _bench_demos(args) if args.suite == "demos" else _bench_eval(args)
+
+        def write(partial_table: str) -> None:
+            """Rewrite the section after every measured row, so a run stopped at a time limit keeps its rows."""
+            if str(args.output) != "-":
+                write_report(args.output, title, heading, partial_table, info, command, data)
+
+        table = _bench_demos(args, write) if args.suite == "demos" else _bench_eval(args, write)
     elif args.suite == "mjx":
         title, heading, table, data = _bench_mjx(args, info, command)
     else:
@@ -264,7 +270,8 @@ def _bench(args) -> int:
     return 0
 
 
-def _bench_demos(args) -> str:
+def _bench_demos(args, on_table) -> str:
+    """Run the demos suite; `on_table(markdown)` gets the table of the rows measured so far after each row."""
     import jax
 
     from partinstruct_mjx.bench import demos
@@ -273,6 +280,7 @@ def _bench_demos(args) -> str:
 
     cache = enable_compilation_cache()
     episodes = demos.bench_episodes(args.episodes or 64)
+    device = f"{jax.default_backend()} ({jax.devices()[0].device_kind})"
     results = []
     for batch, tries in itertools.product(args.batch_sizes or [16], args.oracle_tries or [SEGMENT_TRIES]):
         result = demos.measure(episodes, batch, args.repeats, args.threads, backend=args.backend, oracle_tries=tries)
@@ -281,19 +289,21 @@ def _bench_demos(args) -> str:
               f"{result.episodes_per_s:.2f} episodes/s, "
               f"{result.env_steps_per_s:,.0f} env steps/s, oracle success {result.successes}/{result.episodes}, "
               f"compile {result.compile_s:.1f} s")
-    device = f"{jax.default_backend()} ({jax.devices()[0].device_kind})"
-    table = demos.markdown(results, episodes, device, f"on ({cache})")
+        table = demos.markdown(results, episodes, device, f"on ({cache})")
+        on_table(table)
     print(table)
     return table
 
 
-def _bench_eval(args) -> str:
+def _bench_eval(args, on_table) -> str:
+    """Run the eval suite; `on_table(markdown)` gets the table of the rows measured so far after each row."""
     import jax
 
     from partinstruct_mjx.bench import evaluation
     from partinstruct_mjx.jax_setup import enable_compilation_cache
 
     cache = enable_compilation_cache()
+    device = f"{jax.default_backend()} ({jax.devices()[0].device_kind})"
     results = []
     for batch in args.batch_sizes or [16]:
         config = evaluation.bench_config(args.episodes or 8, batch, args.backend, args.threads)
@@ -304,7 +314,8 @@ def _bench_eval(args) -> str:
         print(f"batch {batch:>3}: {result.episodes_per_min:,.1f} episodes/min, oracle success "
               f"{result.cold.successes}/{result.cold.episodes}, compile {result.compile_s:.1f} s, "
               f"{evaluation.FULL_EVALUATION:,} episodes in {result.full_evaluation_min:,.1f} min")
-    table = evaluation.markdown(results, f"{jax.default_backend()} ({jax.devices()[0].device_kind})", f"on ({cache})")
+        table = evaluation.markdown(results, device, f"on ({cache})")
+        on_table(table)
     print(table)
     return table
 

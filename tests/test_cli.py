@@ -3,6 +3,8 @@
 import subprocess
 import sys
 
+import pytest
+
 from partinstruct_mjx.bench.report import write_section
 from partinstruct_mjx.cli import main
 
@@ -33,3 +35,27 @@ def test_bench_writes_its_section_and_keeps_others(tmp_path, capsys):
     assert "| 2 |" in text and "command: `partinstruct bench" in text
     assert main(["bench", "--batch-sizes", "1", "--steps", "5", "--repeats", "1", "--output", str(report)]) == 0
     assert report.read_text().count("## CPU backend") == 1
+
+
+@pytest.mark.slow
+def test_bench_demos_keeps_the_rows_of_a_run_stopped_midway(tmp_path, monkeypatch):
+    """The demos suite rewrites its section after every row: a run interrupted during its second row (a device
+    call's time limit) leaves the first one written."""
+    from partinstruct_mjx.bench import demos
+
+    real_measure, calls = demos.measure, []
+
+    def measure_then_stop(*args, **kwargs):
+        calls.append(kwargs["oracle_tries"])
+        if len(calls) > 1:
+            raise KeyboardInterrupt
+        return real_measure(*args, **kwargs)
+
+    monkeypatch.setattr(demos, "measure", measure_then_stop)
+    report = tmp_path / "benchmarks.md"
+    with pytest.raises(KeyboardInterrupt):
+        main(["bench", "demos", "--episodes", "2", "--batch-sizes", "2", "--oracle-tries", "1", "4",
+              "--output", str(report)])
+    assert calls == [1, 4]
+    rows = [line for line in report.read_text().splitlines() if line.startswith("| 2 |")]
+    assert len(rows) == 1 and rows[0].startswith("| 2 | 1 | 2 |")
