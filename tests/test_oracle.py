@@ -1,6 +1,7 @@
 """The oracle: grasp/touch candidates on real built-in objects, chain compilation, and a physics rollout."""
 
 import dataclasses
+from functools import partial
 
 import jax
 import jax.numpy as jnp
@@ -174,6 +175,25 @@ def test_oracle_follows_a_skill_mode_env_through_chained_moves(episodes):
     assert env_counted_lift is not None and env_counted_lift < 0.1
     assert lifted > 0.11
     np.testing.assert_allclose(oracle_p0, np.asarray(state.task.skill_p0[0]), atol=1e-6)
+
+
+@pytest.mark.slow
+def test_a_scene_planned_alone_gets_the_plan_it_gets_in_a_batch(episodes):
+    """A batch of one is planned without vmap (faster on a CPU); its grasp plan is the batched plan of that scene."""
+    episode = next(e for e in episodes if e.obj_class == "mug" and e.task_type == 3)
+    with _env(episode, batch=2) as env:
+        state = env.reset(jax.random.PRNGKey(0), [episode, episode])
+        policy = OraclePolicy()
+        policy.reset(env, state, jax.random.PRNGKey(0))
+        data, joints = state.data.for_jit(), state.info["joint_targets"]
+        oracle = policy.state.replace(needs_plan=jnp.ones_like(policy.state.needs_plan))
+        batched = jax.jit(machine.plan)(oracle, data, env.geometry, env.kinematics, joints)
+        first = partial(jax.tree.map, lambda x: x[:1])
+        alone = jax.jit(machine.plan)(first(oracle), first(data), env.geometry, env.kinematics, joints[:1])
+    assert int(alone.stage[0]) == 1 and not bool(alone.needs_plan[0])
+    for name in ("target_pos", "target_quat", "approach", "stage", "attempt"):
+        np.testing.assert_allclose(np.asarray(getattr(alone, name))[0], np.asarray(getattr(batched, name))[0],
+                                   atol=1e-6, err_msg=name)
 
 
 def test_push_point_presses_low_on_the_face_opposite_the_push_near_the_middle(episodes):
