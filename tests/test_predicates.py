@@ -291,3 +291,20 @@ def test_part_facts_match_the_single_predicates_on_an_oracle_rollout(obj_id, typ
     np.testing.assert_array_equal(unread.grasped, grasped & ~spatial)
     assert not np.asarray(unread.touched).any() and not np.asarray(unread.on_table).any()
     np.testing.assert_array_equal(unread.centers, 0.0)
+
+
+ROTATION_TYPES = sorted(t for t in TASK_TYPES if any(s.name == "rotate_obj" for s in task_type(t).chain))
+
+
+@pytest.mark.parametrize("type_id", [3] + ROTATION_TYPES)
+def test_task_mode_keeps_a_rotation_types_spatial_parts_on_the_object(world, type_id):
+    """Task mode resamples spatial parts every step, except for the types that turn the object (type 11 too,
+    docs/differences.md #35): there 'the back' stays the region that was at the back, wherever it turns."""
+    chain = task_type(type_id).build_chain(SLOTS, _directions(type_id))
+    compiled = progress.compile_episodes([(type_id, chain)], world.names)
+    stack = lambda s: jax.tree_util.tree_map(lambda x: x[None], s)  # noqa: E731
+    task = INITIAL(stack(world.state()), world.geo, compiled)
+    turned = world.state(rotation=Rotation.from_euler("z", np.pi / 2))
+    task_after = UPDATE(task, stack(turned), world.geo, skill_mode=False)
+    kept = bool(np.array_equal(np.asarray(task_after.masks), np.asarray(task.masks)))
+    assert kept == (type_id in ROTATION_TYPES)

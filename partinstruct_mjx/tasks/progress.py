@@ -23,8 +23,10 @@ MAX_GOALS = 4
 MAX_SKILLS = 7
 MAX_PHASES = 2
 MOVE_THRESHOLD = 0.05
-FROZEN_SPATIAL_TYPES = (8, 10, 12, 13, 14, 15, 16)
-"""Task mode keeps the spatial parts of these (rotation) types as sampled at reset (spec 3.3)."""
+FROZEN_SPATIAL_TYPES = (8, 10, 11, 12, 13, 14, 15, 16)
+"""Task mode keeps the spatial parts of these (rotation) types as sampled at reset (spec 3.3). The original's list
+also names 17, which does not exist, and leaves out 11, a rotation task: a spatial part resampled every step always
+lies on its own side, so 'rotate the back to face left' could never hold (docs/differences.md)."""
 PROGRESS_FIELDS = ("skill_index", "phase", "skill_p0", "masks", "goals_met", "success", "completion")
 """The TaskState fields `update` changes (the others are fixed at reset)."""
 
