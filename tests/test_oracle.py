@@ -9,11 +9,14 @@ import numpy as np
 import pytest
 
 from partinstruct_mjx.assets.catalog import load_catalog
+from partinstruct_mjx.control import jax_ik
 from partinstruct_mjx.control.rotations import quat_rotate
 from partinstruct_mjx.env import EnvConfig, PartInstructEnv, hold_action
-from partinstruct_mjx.oracle import backtrack, candidates, machine, pushing
+from partinstruct_mjx.oracle import backtrack, candidates, machine, pushing, rotation
 from partinstruct_mjx.oracle.rollout import OraclePolicy, run_oracle
 from partinstruct_mjx.paths import assets_root
+from partinstruct_mjx.sim.panda import HOME_ARM_QPOS
+from partinstruct_mjx.sim.scene import TABLE_HEIGHT, build_scene
 from partinstruct_mjx.tasks import predicates
 from partinstruct_mjx.tasks.episodes import generate_episodes
 from partinstruct_mjx.tasks.vocabulary import direction_vector
@@ -383,3 +386,24 @@ def test_streamed_episodes_match_their_single_runs(episodes):
 
 def test_no_episodes_yield_nothing():
     assert list(run_oracle(None, [], jax.random.PRNGKey(0))) == []
+
+
+def test_a_turn_on_the_table_spins_the_object_about_its_footprint():
+    # A standing cylinder (radius 3 cm) held from above 2.5 cm off its axis. Turned about the TCP it would be dragged
+    # round on the table (a bottle twisted out of the fingers so); the plan spins it in place about its footprint.
+    kinematics = jax_ik.ArmKinematics.from_scene(build_scene())
+    centre = np.array([0.05, 0.0, TABLE_HEIGHT])
+    angles, heights = np.meshgrid(np.linspace(0, 2 * np.pi, 24, endpoint=False), np.linspace(0.0, 0.12, 7))
+    points = np.stack([centre[0] + 0.03 * np.cos(angles.ravel()), centre[1] + 0.03 * np.sin(angles.ravel()),
+                       centre[2] + heights.ravel()], axis=1)
+    hand_pos = jnp.array(centre + [0.025, 0.0, 0.10], jnp.float32)
+    hand_quat = candidates.tcp_quat(jnp.array([0.0, 0.0, -1.0]), jnp.array([0.0, 1.0, 0.0]))
+    q, _, _ = jax_ik.solve_ik(kinematics, jnp.asarray(HOME_ARM_QPOS, jnp.float32)[None], hand_pos[None],
+                              hand_quat[None])
+    found, axis, angle, pivot, _, _ = jax.jit(rotation.plan)(
+        kinematics, q[0], hand_pos, hand_quat, jnp.array(centre + [0.0, 0.0, 0.06], jnp.float32),
+        jnp.asarray(points, jnp.float32), jnp.ones(len(points), bool), jnp.array([1.0, 0.0, 0.0]),
+        jnp.array([0.0, 1.0, 0.0]), jnp.asarray(True))
+    assert bool(found)
+    assert float(angle) == pytest.approx(np.pi / 2, abs=1e-3) and abs(float(axis[2])) == pytest.approx(1.0)
+    np.testing.assert_allclose(np.asarray(pivot)[:2], centre[:2], atol=2e-3)

@@ -4,7 +4,8 @@ FACING holds for every rotation that maps the part's direction v (from the objec
 onto the goal d: the shortest arc from v to d followed by any twist about d. In the air the oracle considers
 NUM_TWISTS of them, each about two pivots (the object's origin, which keeps the object where the carries put it, and
 the TCP, which keeps the hand where it is); on the table only yaw turns keep the object standing, the short way round
-or the long way. The hand follows the object rigidly, so a turn R about pivot k takes the TCP pose (p, q) to
+or the long way, each about the middle of the object's footprint (the object spins in place; turned about the TCP of
+an off-centre grasp, a standing bottle was dragged round on the table and twisted out of the fingers) or the TCP. The hand follows the object rigidly, so a turn R about pivot k takes the TCP pose (p, q) to
 (k + R (p - k), R q). An option is kept when the batched JAX IK reaches the TCP at every sixth of the way along it,
 each from the previous solution without a joint jumping, and the turned object stays above the table (the hand is raised for it
 where needed); the cheapest kept option (turn angle, object displacement, raise) wins. Pure JAX for one environment.
@@ -20,6 +21,7 @@ import numpy as np
 
 from partinstruct_mjx.control import jax_ik
 from partinstruct_mjx.control.rotations import axis_angle_to_quat, quat_multiply, quat_rotate
+from partinstruct_mjx.oracle import pushing
 from partinstruct_mjx.sim.scene import TABLE_HEIGHT
 
 NUM_TWISTS = 8
@@ -62,7 +64,8 @@ def options(v: jnp.ndarray, d: jnp.ndarray, on_table: jnp.ndarray) -> tuple[jnp.
     """Candidate turns: axes (N, 3), angles (N,) and validity (N,), N = 2 * NUM_TWISTS.
 
     In the air: each twist about d after the shortest arc, once per pivot (rows [:NUM_TWISTS] about the object's
-    origin, the rest about the TCP). On the table: the yaw turn the short way and the long way (about the TCP).
+    origin, the rest about the TCP). On the table: the yaw turn the short way and the long way, once per pivot (the
+    footprint's middle, the TCP).
     """
     v = v / jnp.maximum(jnp.linalg.norm(v), 1e-9)
     arc_axis, arc_angle = arc(v, d)
@@ -79,7 +82,7 @@ def options(v: jnp.ndarray, d: jnp.ndarray, on_table: jnp.ndarray) -> tuple[jnp.
     axes = jnp.where(on_table, jnp.concatenate([table_axes, table_axes]), jnp.concatenate([air_axes, air_axes]))
     angles = jnp.where(on_table, jnp.concatenate([jnp.abs(yaws), jnp.abs(yaws)]),
                        jnp.concatenate([air_angles, air_angles]))
-    valid = jnp.where(on_table, jnp.concatenate([jnp.zeros(NUM_TWISTS, bool), table_valid]),
+    valid = jnp.where(on_table, jnp.concatenate([table_valid, table_valid]),
                       jnp.ones(2 * NUM_TWISTS, bool))
     return axes, angles, valid
 
@@ -99,7 +102,8 @@ def plan(kinematics, q, hand_pos, hand_quat, object_pos, object_points, object_v
     (M, 3) world; v: the part's direction now (unnormalised is fine); d: the goal direction; on_table: yaw only.
     """
     axes, angles, valid = options(v, d, on_table)
-    pivots = jnp.concatenate([jnp.tile(object_pos, (NUM_TWISTS, 1)), jnp.tile(hand_pos, (NUM_TWISTS, 1))])
+    middle = jnp.where(on_table, pushing.footprint_centre(object_points, object_valid), object_pos)
+    pivots = jnp.concatenate([jnp.tile(middle, (NUM_TWISTS, 1)), jnp.tile(hand_pos, (NUM_TWISTS, 1))])
 
     def evaluate(axis, angle, pivot):
         def lowest(fraction):
