@@ -407,3 +407,13 @@ def test_a_turn_on_the_table_spins_the_object_about_its_footprint():
     assert bool(found)
     assert float(angle) == pytest.approx(np.pi / 2, abs=1e-3) and abs(float(axis[2])) == pytest.approx(1.0)
     np.testing.assert_allclose(np.asarray(pivot)[:2], centre[:2], atol=2e-3)
+
+
+def test_touching_again_after_a_push_aims_over_the_rear_faces_top():
+    # A 6 x 4 x 3 cm block pushed along +x: the fingertip aims just above its rear face's top edge, in line with where
+    # it is, not at the face (where the pads' edge would stop it over 1 cm from the part).
+    xs, ys, zs = np.meshgrid(np.linspace(0.0, 0.06, 13), np.linspace(-0.02, 0.02, 9), np.linspace(0.06, 0.09, 7))
+    points = jnp.asarray(np.stack([xs.ravel(), ys.ravel(), zs.ravel()], axis=1), jnp.float32)
+    tip = jnp.array([-0.03, 0.01, 0.07])
+    aim = np.asarray(machine.rim_point(points, jnp.ones(len(points), bool), jnp.array([1.0, 0.0, 0.0]), tip))
+    np.testing.assert_allclose(aim, [0.0, 0.01, 0.09 + machine.RIM_ABOVE], atol=1e-6)

@@ -89,9 +89,12 @@ PUSH_LOOKAHEAD = 0.04
 PUSH_STOP = 0.006
 """A push heads for the point this far ahead of the object on its line (m), and stops this short of the goal."""
 RETOUCH_BACK = 0.02
-RETOUCH_STANDOFF = 0.006
-"""Metres behind the touched part the fingertip waits before touching it again after a push, and short of it that
-the fingertip stops (TOUCHING holds within 1 cm)."""
+"""Metres behind the touched part the fingertip waits before touching it again after a push."""
+RIM_ABOVE = 0.004
+RIM_OVER = 0.003
+"""Touching again after a push aims the fingertip this far (m) above the top of the touched part's rear face and this
+far past its rear edge (TOUCHING holds within 1 cm). Pressing the face itself, the pads' edge met it first and
+stopped the fingertip, the middle of the pads' end, 1-1.4 cm away."""
 LIFT_START_SPEED = 0.003
 LIFT_ACCELERATION = 0.0005
 """A carry's commanded speed starts at this (m per step) and grows by this per step up to CARRY_SPEED."""
@@ -452,6 +455,16 @@ def push_approach(anchor, z_axis, pre_push, cmd_pos, object_top):
     return back_off, jnp.where(crossing, pre_push.at[2].set(over), pre_push), crossing
 
 
+def rim_point(points, valid, direction, tip):
+    """Where touching a part again after a push along `direction` aims the fingertip (before RIM_OVER): RIM_ABOVE
+    above the top of the part's rear face (the face towards the pusher), the top point nearest `tip` sideways."""
+    rear = pushing.face(points, valid, -direction)
+    offset = points - tip
+    sideways = (offset - (offset @ direction)[:, None] * direction) * jnp.array([1.0, 1.0, 0.0])
+    top = jnp.argmax(jnp.where(rear, points[:, 2] - 0.5 * jnp.linalg.norm(sideways, axis=-1), -jnp.inf))
+    return points[top] + jnp.array([0.0, 0.0, RIM_ABOVE])
+
+
 def reach_counted(effects, is_touch, stage, grip_width, previous_width):
     """A touch is judged as it approaches: done the moment its effects hold (from the pre-pose on). A grasp is done
     once its effects hold after the fingers closed (stage 4 on) and stopped moving (less than GRIP_SETTLED since the
@@ -549,8 +562,7 @@ def _act_one(o: OracleState, data, geo: PartGeometry, rows, env, follow_env: boo
     lateral = offset - (offset @ heading) * heading
     steer = PUSH_SPEED * heading - jnp.clip(PUSH_STEER * lateral, -PUSH_STEER_LIMIT, PUSH_STEER_LIMIT)
     pushed_enough = travelled > UNIT_DISTANCE - PUSH_STOP
-    retouch_point = focus_points[jnp.argmin(jnp.where(
-        focus_valid, focus_points @ direction + 0.5 * jnp.linalg.norm(focus_points - tip, axis=-1), jnp.inf))]
+    retouch_point = rim_point(focus_points, focus_valid, direction, tip)
     tip_to_tcp = -predicates.FINGERTIP_OFFSET * z_axis
     object_top = jnp.where(geo.valid[geo.whole], world[geo.whole][:, 2], -jnp.inf).max()
     back_off, to_pre_push, crossing = push_approach(o.anchor_pos, z_axis, push_pos - PUSH_BACK_OFF * direction,
@@ -558,7 +570,7 @@ def _act_one(o: OracleState, data, geo: PartGeometry, rows, env, follow_env: boo
     push_goals = jnp.stack([back_off, to_pre_push, push_point + TOUCH_PRESS * direction + to_tcp,
                             o.cmd_pos + jnp.where(pushed_enough, 0.0, steer),
                             retouch_point - RETOUCH_BACK * direction + tip_to_tcp,
-                            retouch_point - RETOUCH_STANDOFF * direction + tip_to_tcp])
+                            retouch_point + RIM_OVER * direction + tip_to_tcp])
     push_stage = jnp.clip(stage, 0, 5)
     # Touching again stops at the object (the pads may press it before TOUCHING's fingertip point is near).
     push_goal = jnp.where((push_stage == 5) & in_contact, o.cmd_pos, push_goals[push_stage])
