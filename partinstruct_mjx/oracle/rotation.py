@@ -5,10 +5,11 @@ onto the goal d: the shortest arc from v to d followed by any twist about d. In 
 NUM_TWISTS of them, each about two pivots (the object's origin, which keeps the object where the carries put it, and
 the TCP, which keeps the hand where it is); on the table only yaw turns keep the object standing, the short way round
 or the long way, each about the middle of the object's footprint (the object spins in place; turned about the TCP of
-an off-centre grasp, a standing bottle was dragged round on the table and twisted out of the fingers) or the TCP. The hand follows the object rigidly, so a turn R about pivot k takes the TCP pose (p, q) to
-(k + R (p - k), R q). An option is kept when the batched JAX IK reaches the TCP at every sixth of the way along it,
-each from the previous solution without a joint jumping, and the turned object stays above the table (the hand is raised for it
-where needed); the cheapest kept option (turn angle, object displacement, raise) wins. Pure JAX for one environment.
+an off-centre grasp, a standing bottle was dragged round on the table and twisted out of the fingers) or the TCP. The
+hand follows the object rigidly, so a turn R about pivot k takes the TCP pose (p, q) to (k + R (p - k), R q). An
+option is kept when the batched JAX IK reaches the TCP at every sixth of the way along it, each from the previous
+solution without a joint jumping, and the turned object stays above the table (the hand is raised for it where
+needed); the cheapest kept option (turn angle, object displacement, raise) wins. Pure JAX for one environment.
 """
 
 from __future__ import annotations

@@ -15,7 +15,7 @@ from partinstruct_mjx.errors import TaskError
 from partinstruct_mjx.tasks import predicates
 from partinstruct_mjx.tasks.part_geometry import PartGeometry, PartNames, spatial_masks
 from partinstruct_mjx.tasks.skills import SkillStep
-from partinstruct_mjx.tasks.task_types import ANY_PART, Goal, task_type
+from partinstruct_mjx.tasks.task_types import ANY_PART, TASK_TYPES, Goal, task_type
 from partinstruct_mjx.tasks.vocabulary import UNIT_DISTANCE, direction_vector
 
 GOAL_KINDS = ("PAD", "ON", "GRASPING", "TOUCHING", "FACING", "AT", "RELEASED")
@@ -23,10 +23,10 @@ MAX_GOALS = 4
 MAX_SKILLS = 7
 MAX_PHASES = 2
 MOVE_THRESHOLD = 0.05
-FROZEN_SPATIAL_TYPES = (8, 10, 11, 12, 13, 14, 15, 16)
-"""Task mode keeps the spatial parts of these (rotation) types as sampled at reset (spec 3.3). The original's list
-also names 17, which does not exist, and leaves out 11, a rotation task: a spatial part resampled every step always
-lies on its own side, so 'rotate the back to face left' could never hold (docs/differences.md)."""
+FROZEN_SPATIAL_TYPES = tuple(t.id for t in TASK_TYPES.values() if any(s.name == "rotate_obj" for s in t.chain))
+"""Task mode keeps the spatial parts of the types that turn the object (8, 10-16) as sampled at reset (spec 3.3). The
+original's list also names 17, which does not exist, and leaves out 11, a rotation task: a spatial part resampled
+every step always lies on its own side, so 'rotate the back to face left' could never hold (docs/differences.md)."""
 PROGRESS_FIELDS = ("skill_index", "phase", "skill_p0", "masks", "goals_met", "success", "completion")
 """The TaskState fields `update` changes (the others are fixed at reset)."""
 
