@@ -20,6 +20,7 @@ from partinstruct_mjx.control.rotations import matrix_to_quat
 from partinstruct_mjx.oracle import pushing as pushing_module
 from partinstruct_mjx.sim.scene import TABLE_HEIGHT
 from partinstruct_mjx.tasks.predicates import masked_mean
+from partinstruct_mjx.vectors import dot3, norm3
 
 PAD_CENTRE = 0.0394
 """Distance from the TCP along its z axis to the middle of the finger pads (hand frame z 0.0944 vs 0.055)."""
@@ -153,8 +154,8 @@ def _spread(points, valid, start, count: int) -> jnp.ndarray:
 def _thickness(seed, normal, object_points, object_valid):
     """How deep the object goes behind `seed` along -normal (within the gripper's reach), metres."""
     d = object_points - seed
-    s = -(d @ normal)
-    off_line = jnp.linalg.norm(d + s[:, None] * normal, axis=-1)
+    s = -dot3(d, normal)
+    off_line = norm3(d + s[:, None] * normal)
     hit = object_valid & (off_line < LINE_RADIUS) & (s > 0) & (s < MAX_GRASP_WIDTH)
     return jnp.where(hit, s, 0.0).max()
 
@@ -163,8 +164,8 @@ def _section(point, approach, object_points, object_valid):
     """Where the line through `point` along the approach enters and leaves the object (distances along it; the
     fingers arrive at the first); both 0 when it misses."""
     d = object_points - point
-    t = d @ approach
-    off_line = jnp.linalg.norm(d - t[:, None] * approach, axis=-1)
+    t = dot3(d, approach)
+    off_line = norm3(d - t[:, None] * approach)
     hit = object_valid & (off_line < LINE_RADIUS)
     first = jnp.where(hit, t, jnp.inf).min()
     last = jnp.where(hit, t, -jnp.inf).max()
@@ -192,7 +193,7 @@ def _clear_pad_tips(centre, approach, closing, across, object_points, object_val
     between the pads is what they pinch (at most PAD_HALF_LENGTH of back-off for the surface)."""
     table = _table_back_off(centre, approach, closing, across)
     d = object_points - centre
-    u, v, t = d @ across, d @ closing, d @ approach
+    u, v, t = dot3(d, across), dot3(d, closing), dot3(d, approach)
     ahead = (object_valid & (jnp.abs(u) < PAD_HALF_WIDTH + 0.003) & (jnp.abs(v) > PAD_INNER - 0.005)
              & (jnp.abs(v) < PAD_OUTER) & (t > 0))
     surface = jnp.maximum(PAD_HALF_LENGTH + TIP_CLEARANCE + 0.001 - jnp.where(ahead, t, jnp.inf).min(), 0.0)
@@ -206,7 +207,7 @@ def _score(centre, approach, closing, object_points, object_normals, object_vali
 
     def local(points):
         d = points - centre
-        return d @ across, d @ closing, d @ approach
+        return dot3(d, across), dot3(d, closing), dot3(d, approach)
 
     def pinched(u, v, t):
         between = object_valid & (jnp.abs(u) < PAD_HALF_WIDTH) & (jnp.abs(t) < PAD_HALF_LENGTH) & (jnp.abs(v) < 0.04)
@@ -225,12 +226,12 @@ def _score(centre, approach, closing, object_points, object_normals, object_vali
     # away on both sides of the pad, like a mug's wall, pushes straight; an off-centre chord of a round part pushes
     # it out along the approach). Faces parallel to the closing axis (the top and bottom of a flat part) and back
     # faces (the inside of a thin wall, behind the face the pad touches) are left out.
-    along = object_normals @ closing
+    along = dot3(object_normals, closing)
     side_max = between & (along > PARALLEL_FACE) & (v > v_max - CONTACT_BAND)
     side_min = between & (along < -PARALLEL_FACE) & (v < v_min + CONTACT_BAND)
 
     def net_cosine(side):
-        push = (object_normals * side[:, None]).sum(axis=0)
+        push = side.astype(object_normals.dtype) @ object_normals  # a matrix product once vmapped: fast on a CPU
         return jnp.abs(push @ closing) / jnp.maximum(jnp.linalg.norm(push), 1e-9)
 
     antipodal = jnp.minimum(net_cosine(side_max), net_cosine(side_min))

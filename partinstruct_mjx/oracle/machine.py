@@ -179,7 +179,7 @@ def init(chains: dict, data, geometry: PartGeometry, keys: jax.Array) -> OracleS
     zeros = jnp.zeros(batch, jnp.int32)
     return OracleState(
         **fields, skill=zeros, stage=zeros, stage_steps=zeros, skill_steps=zeros, attempt=zeros, lost=zeros,
-        needs_plan=jnp.asarray(np.isin(chains["kind"][:, 0], (GRASP, TOUCH))), failed=jnp.zeros(batch, bool),
+        needs_plan=fields["kind"][:, 0] <= TOUCH, failed=jnp.zeros(batch, bool),
         failed_skill=jnp.full(batch, -1, jnp.int32), p0=jnp.asarray(data.object_pos, jnp.float32), masks=masks,
         cmd_pos=jnp.asarray(data.tcp_pos, jnp.float32), cmd_quat=jnp.asarray(data.tcp_quat, jnp.float32),
         finger=jnp.asarray(data.finger_qpos[:, 0], jnp.float32),
@@ -205,7 +205,8 @@ def plan(oracle: OracleState, data, geometry: PartGeometry, kinematics, joint_ta
     index = jnp.clip(oracle.skill, 0, progress.MAX_SKILLS - 1)[:, None]
     kind = jnp.take_along_axis(oracle.kind, index, axis=1)[:, 0]
     push = (kind == MOVE) & jnp.take_along_axis(oracle.touching, index, axis=1)[:, 0]
-    for planner, needed in ((_plan_reach, kind <= TOUCH), (_plan_turn, kind == ROTATE), (_plan_push, push)):
+    for planner, needed in ((_plan_grasp, kind == GRASP), (_plan_touch, kind == TOUCH), (_plan_turn, kind == ROTATE),
+                            (_plan_push, push)):
         oracle = jax.lax.cond((oracle.needs_plan & needed).any(),
                               partial(_per_scene, planner, data=data, geometry=geometry, kinematics=kinematics,
                                       joint_targets=joint_targets), lambda o: o, oracle)
@@ -270,17 +271,14 @@ def _plan_turn(o: OracleState, data, geo: PartGeometry, kinematics, q):
         needs_plan=o.needs_plan & ~need)
 
 
-def _plan_reach(o: OracleState, data, geo: PartGeometry, kinematics, q):
+def _plan_grasp(o: OracleState, data, geo: PartGeometry, kinematics, q):
     index = jnp.clip(o.skill, 0, progress.MAX_SKILLS - 1)
-    kind, part = o.kind[index], jnp.maximum(o.part[index], 0)
-    world = predicates.world_clouds(data, geo)
-    whole = geo.whole
-    object_points, object_valid = world[whole][::2], geo.valid[whole][::2]
-    object_normals = quat_rotate(data.body_quat[geo.bodies[whole][::2]], geo.normals[whole][::2])
-    part_points, part_valid = predicates.part_cloud(data, geo, o.masks, part, world)
-    part_normals = quat_rotate(data.body_quat[geo.bodies[part]], geo.normals[part])
+    part = jnp.maximum(o.part[index], 0)
     key, sub = jax.random.split(o.key)
-
+    object_points, object_valid = _object_cloud(data, geo)
+    object_normals = quat_rotate(data.body_quat[geo.bodies[geo.whole][::2]], geo.normals[geo.whole][::2])
+    part_points, part_valid = predicates.part_cloud(data, geo, o.masks, part)
+    part_normals = quat_rotate(data.body_quat[geo.bodies[part]], geo.normals[part])
     # A chain that turns the object on the table later needs the hand above it (a turned side grasp points the
     # hand back at the robot).
     later = jnp.arange(progress.MAX_SKILLS) > index
@@ -297,47 +295,74 @@ def _plan_reach(o: OracleState, data, geo: PartGeometry, kinematics, q):
     turn_a = jnp.linalg.norm(quat_error(quat_a, o.cmd_quat[None]), axis=-1)
     turn_b = jnp.linalg.norm(quat_error(quat_b, o.cmd_quat[None]), axis=-1)
     near = (turn_a <= turn_b)[:, None]
-    grasp_quat = jnp.stack([jnp.where(near, quat_a, quat_b), jnp.where(near, quat_b, quat_a)], 1).reshape(-1, 4)
+    quats = jnp.stack([jnp.where(near, quat_a, quat_b), jnp.where(near, quat_b, quat_a)], 1).reshape(-1, 4)
     approach = jnp.repeat(approach, 2, axis=0)
-    grasp_pos = jnp.repeat(grasps["centre"][top], 2, axis=0) - candidates.PAD_CENTRE * approach
-    grasp_ok = jnp.repeat(jnp.isfinite(top_score), 2)
-
-    touches = candidates.touch_candidates(object_points, object_valid, part_points, part_valid, o.push_side[index])
-    touch_point, touch_axis, touch_score = touches
-    touch_order = jnp.argsort(-touch_score)
-    touch_axis = touch_axis[touch_order]
-    touch_quat = jax.vmap(candidates.touch_quat)(touch_axis)
-    tip = predicates.FINGERTIP_OFFSET - candidates.TOUCH_DEPTH
-    touch_pos = touch_point[touch_order] - tip * touch_axis
-    touch_ok = jnp.isfinite(touch_score[touch_order])
-
-    is_grasp = kind == GRASP
-    pad = grasp_pos.shape[0] - touch_pos.shape[0]
-    positions = jnp.where(is_grasp, grasp_pos, jnp.pad(touch_pos, ((0, pad), (0, 0))))
-    quats = jnp.where(is_grasp, grasp_quat, jnp.pad(touch_quat, ((0, pad), (0, 0))))
-    axes = jnp.where(is_grasp, approach, jnp.pad(touch_axis, ((0, pad), (0, 0))))
-    ok = jnp.where(is_grasp, grasp_ok, jnp.pad(touch_ok, (0, pad)))
-    reached, joints = jax.vmap(_reachable, in_axes=(None, None, 0, 0, 0))(kinematics, q, positions, quats, axes)
-    reachable = ok & reached
+    positions = jnp.repeat(grasps["centre"][top], 2, axis=0) - candidates.PAD_CENTRE * approach
+    reached, joints = jax.vmap(_reachable, in_axes=(None, None, 0, 0, 0))(kinematics, q, positions, quats, approach)
+    reachable = jnp.repeat(jnp.isfinite(top_score), 2) & reached
     # Grasps after which the arm can carry out the rest of the chain (lookahead.py) come first.
     chain = {name: getattr(o, name) for name in ("kind", "direction", "put_down", "part", "on_table_turn",
                                                  "num_skills")}
 
     def part_vector(row):
-        return predicates.part_vector(data, geo, o.masks, jnp.maximum(row, 0), world)
+        return predicates.part_vector(data, geo, o.masks, jnp.maximum(row, 0))
 
-    clear = jax.vmap(lookahead.outlook, in_axes=(None, 0, 0, 0, None, None, None, None, None, None))(
-        kinematics, joints, positions, quats, chain, index, data.object_pos, object_points, object_valid, part_vector)
-    order = jnp.argsort(jnp.where(reachable & (clear | ~is_grasp), 0, 1) * positions.shape[0]
-                        + jnp.arange(positions.shape[0]))
-    # The attempt-th reachable candidate (a retry skips the ones tried before), or the last one when fewer are left.
+    def clear(i):
+        return lookahead.outlook(kinematics, joints[i], positions[i], quats[i], chain, index, data.object_pos,
+                                 object_points, object_valid, part_vector)
+
+    preferred = _first_preferred(reachable, clear, o.attempt + 1)
+    return _take_candidate(o, key, o.kind[index] == GRASP, positions, quats, approach, reachable, preferred)
+
+
+def _first_preferred(reachable, check, wanted):
+    """(N,) `reachable` & `check(i)` (a costly test) for the candidates in rank order until `wanted` of them pass
+    (later ones are left False): what `_take_candidate` needs to pick the same candidate as with every test run."""
+    def body(carry):
+        i, passed, preferred = carry
+        ok = reachable[i] & jax.lax.cond(reachable[i], check, lambda _: jnp.asarray(False), i)
+        return i + 1, passed + ok, preferred.at[i].set(ok)
+
+    def more(carry):
+        i, passed, _ = carry
+        return (i < reachable.shape[0]) & (passed < wanted)
+
+    return jax.lax.while_loop(more, body, (0, 0, jnp.zeros_like(reachable)))[2]
+
+
+def _plan_touch(o: OracleState, data, geo: PartGeometry, kinematics, q):
+    index = jnp.clip(o.skill, 0, progress.MAX_SKILLS - 1)
+    part = jnp.maximum(o.part[index], 0)
+    key, _ = jax.random.split(o.key)
+    object_points, object_valid = _object_cloud(data, geo)
+    part_points, part_valid = predicates.part_cloud(data, geo, o.masks, part)
+    touch_point, touch_axis, touch_score = candidates.touch_candidates(object_points, object_valid, part_points,
+                                                                       part_valid, o.push_side[index])
+    order = jnp.argsort(-touch_score)
+    axes = touch_axis[order]
+    quats = jax.vmap(candidates.touch_quat)(axes)
+    positions = touch_point[order] - (predicates.FINGERTIP_OFFSET - candidates.TOUCH_DEPTH) * axes
+    reached, _ = jax.vmap(_reachable, in_axes=(None, None, 0, 0, 0))(kinematics, q, positions, quats, axes)
+    reachable = jnp.isfinite(touch_score[order]) & reached
+    return _take_candidate(o, key, o.kind[index] == TOUCH, positions, quats, axes, reachable, reachable)
+
+
+def _object_cloud(data, geo: PartGeometry):
+    """Every other point of the object's cloud (world frame) and their validity: what the planners search."""
+    return predicates.object_points(data, geo)[::2], geo.valid[geo.whole][::2]
+
+
+def _take_candidate(o: OracleState, key, kind_matches, positions, quats, axes, reachable, preferred) -> OracleState:
+    """Take the `attempt`-th reachable candidate in rank order, the `preferred` ones (a clear outlook) first (a
+    retry skips the ones tried before; the last one when fewer are left) as the grasp or touch pose. Nothing found:
+    the candidates are a random sample (a thin part has few grasps), so draw again next step while attempts are
+    left, then fail the skill."""
+    order = jnp.argsort(jnp.where(preferred, 0, 1) * positions.shape[0] + jnp.arange(positions.shape[0]))
     rank = jnp.cumsum(reachable[order]) - 1
     chosen = reachable[order] & (rank == jnp.minimum(o.attempt, reachable.sum() - 1))
     found = chosen.any()
     pick = order[jnp.argmax(chosen)]
-    need = o.needs_plan & (kind <= TOUCH)
-    # Nothing found: the candidates are a random sample (a thin part has few grasps), so draw again next step while
-    # attempts are left.
+    need = o.needs_plan & kind_matches
     empty = need & ~found
     fail = empty & (o.attempt + 1 >= MAX_ATTEMPTS)
     take = need & found
@@ -346,7 +371,7 @@ def _plan_reach(o: OracleState, data, geo: PartGeometry, kinematics, q):
         target_quat=jnp.where(take, quats[pick], o.target_quat),
         approach=jnp.where(take, axes[pick], o.approach),
         stage=jnp.where(take, 1, o.stage), stage_steps=jnp.where(take, 0, o.stage_steps),
-        attempt=o.attempt + (empty & ~fail), needs_plan=o.needs_plan & ~(take | fail), key=key,
+        attempt=o.attempt + (empty & ~fail), needs_plan=o.needs_plan & ~(take | fail), key=jnp.where(need, key, o.key),
         failed=o.failed | fail, failed_skill=jnp.where(fail & ~o.failed, o.skill, o.failed_skill))
 
 
@@ -381,8 +406,12 @@ def act(oracle: OracleState, data, task: progress.TaskState, geometry: PartGeome
     data = unpacked(data)
     follow = (task.skill_index, task.skill_p0, task.masks)
     before = oracle.skill
-    oracle = jax.vmap(partial(_act_one, follow_env=follow_env), in_axes=(0, 0, None, 0, 0))(
-        oracle, data, geometry, task.skills, follow)
+    rows = progress.rows_at(task.skills, jnp.clip(oracle.skill, 0, progress.MAX_SKILLS - 1))
+    # The spatial parts `_act_one` judges the skill with (the env's while it follows the env on the same skill).
+    synced = follow_env & (task.skill_index == oracle.skill)
+    facts = progress.goal_facts(data, geometry, jnp.where(synced[:, None, None], task.masks, oracle.masks), rows)
+    oracle = jax.vmap(partial(_act_one, follow_env=follow_env), in_axes=(0, 0, None, 0, 0, 0))(
+        oracle, data, geometry, rows, facts, follow)
     oracle = oracle.replace(masks=_resampled_masks(oracle.skill != before, oracle.masks, data, geometry))
     euler = quat_to_euler_xyz(oracle.cmd_quat)
     return oracle, jnp.concatenate([oracle.cmd_pos, euler, oracle.finger[:, None]], axis=1)
@@ -480,12 +509,7 @@ def push_counted(effects, touching_part, stage, pushed_enough):
     return effects & touching_part & ((stage >= 4) | ((stage == 3) & pushed_enough))
 
 
-def _skill_effects(o: OracleState, data, geo: PartGeometry, rows) -> jnp.ndarray:
-    """The current skill's effects (spec 5.2) hold now, with the oracle's p0 and spatial parts."""
-    return progress.evaluate(data, geo, o.masks, rows, o.p0).all()
-
-
-def _act_one(o: OracleState, data, geo: PartGeometry, rows, env, follow_env: bool):
+def _act_one(o: OracleState, data, geo: PartGeometry, rows, facts, env, follow_env: bool):
     env_skill, env_p0, env_masks = env
     if follow_env:
         # While the machine is on the env's skill it judges it as the env does; once the env has counted a skill the
@@ -495,17 +519,19 @@ def _act_one(o: OracleState, data, geo: PartGeometry, rows, env, follow_env: boo
     index = jnp.clip(o.skill, 0, progress.MAX_SKILLS - 1)
     kind = o.kind[index]
     running = (o.skill != DONE) & ~o.failed
-    effects = _skill_effects(o, data, geo, jax.tree_util.tree_map(lambda x: x[index], rows))
+    # The current skill's effects (spec 5.2) hold now, with the oracle's p0 and spatial parts.
+    effects = progress.evaluate(data, geo, o.masks, rows, o.p0, facts).all()
     tcp = data.tcp_pos
     z_axis = quat_rotate(o.cmd_quat, jnp.array([0.0, 0.0, 1.0]))
     stage, steps = o.stage, o.stage_steps
     up = jnp.array([0.0, 0.0, 1.0])
 
     # The part the skill is about: its own, or for a push the part the touch before it touched.
-    world = predicates.world_clouds(data, geo)
+    # Only the two clouds a step reads are moved to the world frame: the object's and the focus part's.
+    whole_points, whole_valid = predicates.object_points(data, geo), geo.valid[geo.whole]
     push = (kind == MOVE) & o.touching[index]
     focus_part = jnp.maximum(jnp.where(push, o.part[jnp.maximum(index - 1, 0)], o.part[index]), 0)
-    focus_points, focus_valid = predicates.part_cloud(data, geo, env_masks, focus_part, world)
+    focus_points, focus_valid = predicates.part_cloud(data, geo, env_masks, focus_part)
 
     # Grasp / touch: 0 wait for a plan, 1 via point, 2 pre-pose, 3 approach, 4 close, 5 judge, 6 back off.
     pre = o.target_pos - candidates.PREGRASP_DISTANCE * o.approach
@@ -544,10 +570,10 @@ def _act_one(o: OracleState, data, geo: PartGeometry, rows, env, follow_env: boo
     # task's TOUCHING names it): 0 back off, 1 pre-push pose, 2 approach until touching, 3 push, 4 behind the
     # touched part, 5 touch it. The touch before a push usually ends at the push point (then it starts at 3).
     push_pos, push_quat = o.target_pos, o.target_quat
-    push_point, _ = pushing.push_point(focus_points, focus_valid, world[geo.whole], geo.valid[geo.whole], direction)
+    push_point, _ = pushing.push_point(focus_points, focus_valid, whole_points, whole_valid, direction)
     to_tcp = -predicates.FINGERTIP_OFFSET * quat_rotate(push_quat, up)
-    touching_now = predicates.touching(data, geo, o.masks, geo.whole)
-    touching_part = predicates.touching(data, geo, env_masks, focus_part, world)
+    touching_now = predicates.touching_points(data, whole_points, whole_valid)
+    touching_part = predicates.touching_points(data, focus_points, focus_valid)
     # The fingers press the object (TOUCHING's fingertip point may still be more than 1 cm from it).
     in_contact = touching_now | predicates.finger_on_object(data, geo)
     tip = tcp + predicates.FINGERTIP_OFFSET * quat_rotate(o.cmd_quat, up)
@@ -558,13 +584,13 @@ def _act_one(o: OracleState, data, geo: PartGeometry, rows, env, follow_env: boo
     aim = o.p0 + jnp.minimum(travelled + PUSH_LOOKAHEAD, UNIT_DISTANCE + PUSH_LOOKAHEAD) * direction
     heading = (aim - data.object_pos) * flat
     heading = heading / jnp.maximum(jnp.linalg.norm(heading), 1e-6)
-    offset = (tip - pushing.footprint_centre(world[geo.whole], geo.valid[geo.whole])) * flat
+    offset = (tip - pushing.footprint_centre(whole_points, whole_valid)) * flat
     lateral = offset - (offset @ heading) * heading
     steer = PUSH_SPEED * heading - jnp.clip(PUSH_STEER * lateral, -PUSH_STEER_LIMIT, PUSH_STEER_LIMIT)
     pushed_enough = travelled > UNIT_DISTANCE - PUSH_STOP
     retouch_point = rim_point(focus_points, focus_valid, direction, tip)
     tip_to_tcp = -predicates.FINGERTIP_OFFSET * z_axis
-    object_top = jnp.where(geo.valid[geo.whole], world[geo.whole][:, 2], -jnp.inf).max()
+    object_top = jnp.where(whole_valid, whole_points[:, 2], -jnp.inf).max()
     back_off, to_pre_push, crossing = push_approach(o.anchor_pos, z_axis, push_pos - PUSH_BACK_OFF * direction,
                                                     o.cmd_pos, object_top)
     push_goals = jnp.stack([back_off, to_pre_push, push_point + TOUCH_PRESS * direction + to_tcp,
@@ -650,7 +676,7 @@ def _act_one(o: OracleState, data, geo: PartGeometry, rows, env, follow_env: boo
     over_budget = o.skill_steps >= jnp.asarray(SKILL_BUDGET)[kind]
     # Carrying, pushing or turning without the object in hand fails at once (the original aborts such motions).
     needs_hold = ((kind == MOVE) & (o.grasping[index] | (push & (stage == 3) & ~pushed_enough))) | (kind == ROTATE)
-    holds = jnp.where(push, in_contact, predicates.grasping(data, geo, o.masks, geo.whole))
+    holds = jnp.where(push, in_contact, predicates.pressing(data, geo).any())  # GRASPING of the whole object
     lost = jnp.where(needs_hold & ~holds, o.lost + 1, 0)
     fail = running & ~done & (over_budget | out_of_attempts | (lost > LOST_STEPS))
 

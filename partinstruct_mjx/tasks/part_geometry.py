@@ -18,6 +18,7 @@ from flax import struct
 from partinstruct_mjx.errors import AssetError, TaskError
 from partinstruct_mjx.sim.scene import OBJECT_PREFIX, Scene
 from partinstruct_mjx.tasks.vocabulary import DIRECTIONS, SPATIAL_PARTS
+from partinstruct_mjx.vectors import squared_norm
 
 SPATIAL_VARIANCE = 0.2
 MIDDLE_VARIANCE = 0.03
@@ -145,6 +146,6 @@ def spatial_masks(object_points_world: jnp.ndarray) -> jnp.ndarray:
     lo, hi = object_points_world.min(axis=0), object_points_world.max(axis=0)
     q = (object_points_world - (lo + hi) / 2) / jnp.maximum(jnp.linalg.norm(hi - lo), 1e-9)
     diff = q[None] - jnp.asarray(_SPATIAL_MEANS)[:, None]
-    score = jnp.exp(-0.5 * jnp.sum(diff ** 2, axis=-1) / jnp.asarray(_SPATIAL_VARIANCES)[:, None])
+    score = jnp.exp(-0.5 * squared_norm(diff) / jnp.asarray(_SPATIAL_VARIANCES)[:, None])
     threshold = score.max(axis=1, keepdims=True) - 1.5 * score.std(axis=1, keepdims=True)
     return score >= threshold

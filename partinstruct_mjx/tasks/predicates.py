@@ -15,6 +15,7 @@ from partinstruct_mjx.control.rotations import quat_rotate
 from partinstruct_mjx.sim import panda
 from partinstruct_mjx.sim.scene import TABLE_HEIGHT
 from partinstruct_mjx.tasks.part_geometry import PartGeometry, world_points
+from partinstruct_mjx.vectors import squared_norm
 
 ON_TABLE_DISTANCE = 0.002
 """ON: the object's lowest surface point within this of the table top (the original: 1 mm between the bodies;
@@ -104,8 +105,7 @@ def grasping(state, geo, masks, part, world=None) -> jnp.ndarray:
     force = (state.contact_force * on_object).sum(axis=-1)
     labelled = on_object & (label == part)
     points, valid = part_cloud(state, geo, masks, part, world)
-    gap = jnp.linalg.norm(state.contact_pos[..., None, :] - points, axis=-1)
-    near = on_object & (jnp.where(valid, gap, jnp.inf).min(axis=-1) < SPATIAL_CONTACT_DISTANCE)
+    near = on_object & (within(state.contact_pos[..., None, :], points, SPATIAL_CONTACT_DISTANCE) & valid).any(axis=-1)
     is_semantic = part < geo.num_semantic
     on_part = jnp.where(part == geo.whole, on_object, jnp.where(is_semantic, labelled, near)).any(axis=-1)
     return ((force > GRASP_FORCE) & on_part).any()
@@ -122,10 +122,17 @@ def fingers_closed(state) -> jnp.ndarray:
 
 def touching(state, geo, masks, part, world=None) -> jnp.ndarray:
     """The gripper is closed and its fingertip point is within 1 cm of the part."""
-    tip = fingertip(state)
-    points, valid = part_cloud(state, geo, masks, part, world)
-    distance = jnp.where(valid, jnp.linalg.norm(points - tip, axis=-1), jnp.inf).min()
-    return fingers_closed(state) & (distance < TOUCH_DISTANCE)
+    return touching_points(state, *part_cloud(state, geo, masks, part, world))
+
+
+def touching_points(state, points: jnp.ndarray, valid: jnp.ndarray) -> jnp.ndarray:
+    """TOUCHING of a part given by its world points (M, 3) and their validity (M,)."""
+    return fingers_closed(state) & (within(points, fingertip(state), TOUCH_DISTANCE) & valid).any()
+
+
+def within(a: jnp.ndarray, b: jnp.ndarray, distance: float) -> jnp.ndarray:
+    """Points a and b (broadcast, (..., 3)) lie closer than `distance` (no square root: vectors.py)."""
+    return squared_norm(a - b) < distance * distance
 
 
 def released(state, geo, masks, world=None) -> jnp.ndarray:
@@ -208,8 +215,8 @@ def _spatial_rows(geo: PartGeometry, masks: jnp.ndarray) -> jnp.ndarray:
 def contact_regions(state, geo: PartGeometry, masks: jnp.ndarray) -> jnp.ndarray:
     """(2, 7) per finger: one of its object contacts lies within SPATIAL_CONTACT_DISTANCE of each spatial part."""
     on_object, _ = _on_object(state, geo)
-    gap = jnp.linalg.norm(state.contact_pos[..., None, :] - object_points(state, geo), axis=-1)  # (2, C, M)
-    near = (on_object[..., None] & (gap < SPATIAL_CONTACT_DISTANCE)).any(axis=1)  # (2, M)
+    gap_ok = within(state.contact_pos[..., None, :], object_points(state, geo), SPATIAL_CONTACT_DISTANCE)  # (2, C, M)
+    near = (on_object[..., None] & gap_ok).any(axis=1)  # (2, M)
     return (near[:, None] & _spatial_rows(geo, masks)[None, :-1]).any(axis=-1)
 
 
@@ -218,8 +225,8 @@ def tip_near(state, geo: PartGeometry, masks: jnp.ndarray) -> jnp.ndarray:
     n = geo.num_semantic
     tip = fingertip(state)
     semantic = world_points(state.body_pos, state.body_quat, geo.points[:n], geo.bodies[:n])  # (n, M, 3)
-    near_semantic = (jnp.linalg.norm(semantic - tip, axis=-1) < TOUCH_DISTANCE) & geo.valid[:n]
-    near_whole = jnp.linalg.norm(object_points(state, geo) - tip, axis=-1) < TOUCH_DISTANCE
+    near_semantic = within(semantic, tip, TOUCH_DISTANCE) & geo.valid[:n]
+    near_whole = within(object_points(state, geo), tip, TOUCH_DISTANCE)
     return jnp.concatenate([near_semantic.any(axis=-1), (near_whole & _spatial_rows(geo, masks)).any(axis=-1)])
 
 

@@ -190,12 +190,12 @@ def _resampled(keep: jnp.ndarray, masks: jnp.ndarray, state, geo) -> jnp.ndarray
                         lambda: jnp.where(keep[:, None, None], masks, _batch_masks(state, geo)))
 
 
-def _rows_at(rows: GoalRows, index: jnp.ndarray) -> GoalRows:
+def rows_at(rows: GoalRows, index: jnp.ndarray) -> GoalRows:
     """(B, G) rows: each environment's rows (B, S, G) at its `index` (B,)."""
     return jax.vmap(lambda r, i: jax.tree_util.tree_map(lambda x: x[i], r))(rows, index)
 
 
-def _facts(state, geo: PartGeometry, masks, rows: GoalRows) -> predicates.PartFacts:
+def goal_facts(state, geo: PartGeometry, masks, rows: GoalRows) -> predicates.PartFacts:
     """The batch's part facts for evaluating `rows` (B, G): each search only when one of the rows reads it."""
     def kind(name):
         return rows.kind == GOAL_KINDS.index(name)
@@ -216,8 +216,8 @@ def _skill_update(task: TaskState, state, geo):
         return finished, task.replace(skill_index=skill_index, skill_p0=p0, goals_met=met, success=success,
                                       completion=skill_index / task.num_skills)
 
-    rows = _rows_at(task.skills, jnp.minimum(task.skill_index, MAX_SKILLS - 1))
-    finished, task = jax.vmap(one)(task, state, rows, _facts(state, geo, task.masks, rows))
+    rows = rows_at(task.skills, jnp.minimum(task.skill_index, MAX_SKILLS - 1))
+    finished, task = jax.vmap(one)(task, state, rows, goal_facts(state, geo, task.masks, rows))
     return task.replace(masks=_resampled(~finished, task.masks, state, geo))  # resampled when the next skill starts
 
 
@@ -237,8 +237,8 @@ def _task_update(task: TaskState, state, geo):
                             completion=jnp.where(success, 1.0, completion))
 
     masks = _resampled(task.freeze_spatial, task.masks, state, geo)
-    rows = _rows_at(task.phases, task.phase)
-    return jax.vmap(one)(task, state, masks, rows, _facts(state, geo, masks, rows))
+    rows = rows_at(task.phases, task.phase)
+    return jax.vmap(one)(task, state, masks, rows, goal_facts(state, geo, masks, rows))
 
 
 def update(task: TaskState, state, geo: PartGeometry, skill_mode: bool) -> TaskState:
