@@ -54,7 +54,7 @@ def test_round_trip_robomimic_layout(tmp_path, episodes):
         assert sorted(data) == ["demo_0", "demo_1"]
         assert data.attrs["total"] == 11 and json.loads(data.attrs["env_args"]) == ENV_ARGS
         cloud = data["demo_0/obs/agentview_pcd"]
-        assert cloud.chunks == (1, 16, 3) and cloud.compression == "lzf"
+        assert cloud.chunks == (7, 16, 3) and cloud.compression == "lzf" and cloud.shuffle  # 7 steps: one chunk
         assert data["demo_0/skill_instructions"].dtype.kind == "O"
     read = list(read_demos(tmp_path / "data" / "mug.hdf5"))
     assert [name for name, _ in read] == ["demo_0", "demo_1"]

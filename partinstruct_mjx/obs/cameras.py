@@ -15,6 +15,7 @@ import numpy as np
 from partinstruct_mjx.control.rotations import quat_multiply, quat_to_matrix
 from partinstruct_mjx.errors import SceneError
 from partinstruct_mjx.sim.scene import Scene
+from partinstruct_mjx.vectors import dot3
 
 AGENTVIEW = "agentview"
 WRIST = "wrist"
@@ -66,7 +67,8 @@ def camera_pose(camera: Camera, body_pos: jnp.ndarray, body_quat: jnp.ndarray):
 
 def world_to_optical(points: jnp.ndarray, position: jnp.ndarray, rotation: jnp.ndarray) -> jnp.ndarray:
     """World points (..., 3) -> optical-frame points (..., 3)."""
-    return (points - position) @ rotation
+    d = points - position
+    return jnp.stack([dot3(d, rotation[:, j]) for j in range(3)], axis=-1)  # not a K=3 matmul (vectors.py)
 
 
 def optical_to_world(points: jnp.ndarray, position: jnp.ndarray, rotation: jnp.ndarray) -> jnp.ndarray:

@@ -31,7 +31,6 @@ DONE_GRACE = 10
 
 _plan = jax.jit(machine.plan)
 _init = jax.jit(machine.init)
-_object_pose = jax.jit(original_pose)
 PLAN_ALONE = 4
 """Up to this many scenes asking for a plan in one step are planned one at a time: the planner's cost grows with
 the scenes it is given, and a batch-wide call plans every scene (a streamed batch's scenes start their skills at
@@ -65,11 +64,14 @@ class OracleEpisode:
 
 
 @jax.jit
-def _target_masks(oracle: machine.OracleState, surface, geometry):
+def _recorded(oracle: machine.OracleState, object_quat, object_pos, surface, geometry):
+    """What a step records besides the env's outputs (one dispatch): the object poses in the original's layout and
+    the target-part masks of the surface points."""
     index = jnp.clip(oracle.skill, 0, oracle.kind.shape[1] - 1)
     part = jnp.take_along_axis(oracle.part, index[:, None], axis=1)[:, 0]
     part = jnp.where(oracle.skill == machine.DONE, -1, part)
-    return jax.vmap(point_renderer.target_mask, in_axes=(None, None, 0, 0))(surface, geometry, oracle.masks, part)
+    masks = jax.vmap(point_renderer.target_mask, in_axes=(None, None, 0, 0))(surface, geometry, oracle.masks, part)
+    return original_pose(object_quat, object_pos), masks
 
 
 class OraclePolicy:
@@ -197,11 +199,11 @@ def run_oracle(env: PartInstructEnv, episodes: list, key: jax.Array, record: boo
             return
         if record:
             frame = {"obs": {k: np.asarray(v) for k, v in state.obs.items() if k != "instruction_index"},
-                     "object_pose": np.asarray(_object_pose(state.data.object_quat, state.data.object_pos)),
                      "body_pos": np.asarray(state.data.body_pos, np.float32),
                      "body_quat": np.asarray(state.data.body_quat, np.float32),
-                     "target_mask": np.asarray(_target_masks(policy.state, surface, env.geometry)),
                      "skill": _chain_index(policy.state)}
+            frame["object_pose"], frame["target_mask"] = map(np.asarray, _recorded(
+                policy.state, state.data.object_quat, state.data.object_pos, surface, env.geometry))
         before = policy.state
         action = policy.act(env, state)
         if record:
@@ -243,7 +245,8 @@ def run_oracle(env: PartInstructEnv, episodes: list, key: jax.Array, record: boo
             first_frame[free] = number + 1
             for b in free:
                 steps[b] = []
-        for old in [n for n in frames if n < first_frame[owner >= 0].min(initial=number + 1)]:
+        oldest = first_frame[owner >= 0].min(initial=number + 1)
+        for old in [n for n in frames if n < oldest]:
             del frames[old]
 
 
