@@ -417,3 +417,22 @@ def test_touching_again_after_a_push_aims_over_the_rear_faces_top():
     tip = jnp.array([-0.03, 0.01, 0.07])
     aim = np.asarray(machine.rim_point(points, jnp.ones(len(points), bool), jnp.array([1.0, 0.0, 0.0]), tip))
     np.testing.assert_allclose(aim, [0.0, 0.01, 0.09 + machine.RIM_ABOVE], atol=1e-6)
+
+
+def test_the_lazy_outlook_picks_the_candidate_checking_every_one_picks():
+    # The outlook (a costly IK look-ahead) is run in rank order only until the candidate to take is known.
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        reachable = jnp.asarray(rng.random(16) < 0.6)
+        clear = jnp.asarray(rng.random(16) < 0.5)
+        for attempt in range(3):
+            state = machine.OracleState(**{f.name: jnp.zeros(()) for f in dataclasses.fields(machine.OracleState)})
+            state = state.replace(attempt=jnp.asarray(attempt), needs_plan=jnp.asarray(True), key=jnp.zeros(2),
+                                  target_pos=jnp.zeros(3), target_quat=jnp.zeros(4), approach=jnp.zeros(3),
+                                  failed=jnp.asarray(False), failed_skill=jnp.asarray(-1))
+            positions = jnp.asarray(rng.random((16, 3)))
+            lazy = machine._first_preferred(reachable, lambda i: clear[i], attempt + 1)
+            assert not (lazy & ~(reachable & clear)).any()
+            args = (state, jnp.zeros(2), True, positions, jnp.zeros((16, 4)), jnp.zeros((16, 3)), reachable)
+            every = machine._take_candidate(*args, reachable & clear)
+            assert np.array_equal(machine._take_candidate(*args, lazy).target_pos, every.target_pos)

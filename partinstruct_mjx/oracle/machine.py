@@ -230,10 +230,10 @@ def _plan_push(o: OracleState, data, geo: PartGeometry, kinematics, q):
     index = jnp.clip(o.skill, 0, progress.MAX_SKILLS - 1)
     need = o.needs_plan & (o.kind[index] == MOVE) & o.touching[index]
     direction = o.direction[index]
-    world = predicates.world_clouds(data, geo)
     touched_part = jnp.maximum(o.part[jnp.maximum(index - 1, 0)], 0)
-    touched, touched_valid = predicates.part_cloud(data, geo, o.masks, touched_part, world)
-    point, _ = pushing.push_point(touched, touched_valid, world[geo.whole], geo.valid[geo.whole], direction)
+    touched, touched_valid = predicates.part_cloud(data, geo, o.masks, touched_part)
+    point, _ = pushing.push_point(touched, touched_valid, predicates.object_points(data, geo), geo.valid[geo.whole],
+                                  direction)
     poses = [_push_pose(point, direction, tilt) for tilt in PUSH_TILTS]
     # The palm (a capsule 2 cm behind the TCP, 2.8 cm thick) and the pads' lower edge stay above the table.
     clear = [(pos[2] - 0.02 * jnp.sin(tilt) - candidates.HAND_RADIUS > TABLE_HEIGHT + 0.005)
@@ -253,12 +253,11 @@ def _plan_turn(o: OracleState, data, geo: PartGeometry, kinematics, q):
     index = jnp.clip(o.skill, 0, progress.MAX_SKILLS - 1)
     need = o.needs_plan & (o.kind[index] == ROTATE)
     flat = o.on_table_turn[index]
-    world = predicates.world_clouds(data, geo)
-    vector = predicates.part_vector(data, geo, o.masks, jnp.maximum(o.part[index], 0), world)
+    vector = predicates.part_vector(data, geo, o.masks, jnp.maximum(o.part[index], 0))
     vector = jnp.where(flat, vector * jnp.array([1.0, 1.0, 0.0]), vector)
     found, axis, angle, pivot, raise_by, _ = rotation.plan(
-        kinematics, q, o.cmd_pos, o.cmd_quat, data.object_pos, world[geo.whole][::2], geo.valid[geo.whole][::2],
-        vector, o.direction[index], flat)
+        kinematics, q, o.cmd_pos, o.cmd_quat, data.object_pos, *_object_cloud(data, geo), vector, o.direction[index],
+        flat)
     take = need & found
     return o.replace(
         turn_axis=jnp.where(take, axis, o.turn_axis), turn_angle=jnp.where(take, angle, o.turn_angle),
@@ -320,7 +319,7 @@ def _first_preferred(reachable, check, wanted):
     (later ones are left False): what `_take_candidate` needs to pick the same candidate as with every test run."""
     def body(carry):
         i, passed, preferred = carry
-        ok = reachable[i] & jax.lax.cond(reachable[i], check, lambda _: jnp.asarray(False), i)
+        ok = jax.lax.cond(reachable[i], check, lambda _: jnp.asarray(False), i)
         return i + 1, passed + ok, preferred.at[i].set(ok)
 
     def more(carry):
