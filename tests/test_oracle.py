@@ -1,6 +1,7 @@
 """The oracle: grasp/touch candidates on real built-in objects, chain compilation, and a physics rollout."""
 
 import dataclasses
+import itertools
 from functools import partial
 
 import jax
@@ -330,6 +331,8 @@ def test_backtracking_restores_a_scene_exactly_and_leaves_the_others(episodes):
         assert int(state.info["steps"][0]) == 0 and int(state.info["steps"][1]) == len(actions)
         np.testing.assert_array_equal(state.data.qpos[1], first[-1][1])
         assert not np.array_equal(np.asarray(oracle.key[0]), np.asarray(policy.state.key[0]))
+        # The retry passes over the best candidates of its sample (a grasp that failed would rank first again).
+        assert np.asarray(oracle.skip).tolist() == [backtrack.TRY_SKIP, 0]
         np.testing.assert_array_equal(np.asarray(oracle.key[1]), np.asarray(policy.state.key[1]))
         for action, qpos in zip(actions, first):
             state = env.step(state, action)
@@ -425,14 +428,19 @@ def test_the_lazy_outlook_picks_the_candidate_checking_every_one_picks():
     for _ in range(20):
         reachable = jnp.asarray(rng.random(16) < 0.6)
         clear = jnp.asarray(rng.random(16) < 0.5)
-        for attempt in range(3):
+        for attempt, skip in itertools.product(range(3), (0, backtrack.TRY_SKIP)):
             state = machine.OracleState(**{f.name: jnp.zeros(()) for f in dataclasses.fields(machine.OracleState)})
-            state = state.replace(attempt=jnp.asarray(attempt), needs_plan=jnp.asarray(True), key=jnp.zeros(2),
+            state = state.replace(attempt=jnp.asarray(attempt), skip=jnp.asarray(skip), needs_plan=jnp.asarray(True), key=jnp.zeros(2),
                                   target_pos=jnp.zeros(3), target_quat=jnp.zeros(4), approach=jnp.zeros(3),
                                   failed=jnp.asarray(False), failed_skill=jnp.asarray(-1))
             positions = jnp.asarray(rng.random((16, 3)))
-            lazy = machine._first_preferred(reachable, lambda i: clear[i], attempt + 1)
+            lazy = machine._first_preferred(reachable, lambda i: clear[i], attempt + skip + 1)
             assert not (lazy & ~(reachable & clear)).any()
             args = (state, jnp.zeros(2), True, positions, jnp.zeros((16, 4)), jnp.zeros((16, 3)), reachable)
             every = machine._take_candidate(*args, reachable & clear)
             assert np.array_equal(machine._take_candidate(*args, lazy).target_pos, every.target_pos)
+            # The (attempt + skip)-th reachable candidate in rank order, the clear ones first (the last if fewer).
+            order = sorted(np.flatnonzero(np.asarray(reachable)), key=lambda i: not clear[i])
+            if order:
+                expected = positions[order[min(attempt + skip, len(order) - 1)]]
+                np.testing.assert_array_equal(every.target_pos, expected)

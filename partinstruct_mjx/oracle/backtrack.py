@@ -3,7 +3,8 @@
 A segment is a grasp or touch skill and the skills after it up to the next grasp or touch: everything the oracle
 does with one contact. When a segment fails (the oracle fails a skill, or the episode ends without success), the
 scene goes back to the state saved when the segment started (physics, environment and machine state) and the oracle
-plans again with other random draws (another grasp or touch sample), up to `tries` times in all. The demonstration
+plans again with other random draws (another grasp or touch sample, whose best candidates it passes over: they are
+most often the one that failed), up to `tries` times in all. The demonstration
 keeps only the steps of the try that stands, so it is one real trajectory from the episode's start: its actions,
 replayed from the initial state, reproduce it. A try that finds no candidate at all fails like any other.
 """
@@ -11,6 +12,7 @@ replayed from the initial state, reproduce it. A try that finds no candidate at 
 from __future__ import annotations
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from partinstruct_mjx.env import PartInstructEnv, State
@@ -19,8 +21,11 @@ from partinstruct_mjx.oracle.kinds import GRASP, TOUCH
 from partinstruct_mjx.sim.state import select_rows
 from partinstruct_mjx.tasks import progress
 
-SEGMENT_TRIES = 4
+SEGMENT_TRIES = 6
 """Tries per segment in demo synthesis (1 = no backtracking)."""
+TRY_SKIP = 2
+"""Try k of a segment passes over the k * TRY_SKIP best reachable candidates of its fresh sample (each grasp comes
+with both closing directions), so it does not take the grasp that failed again."""
 
 
 class Backtracker:
@@ -71,9 +76,12 @@ class Backtracker:
 
 
 def with_try(oracle: machine.OracleState, tries: np.ndarray) -> machine.OracleState:
-    """The machine state with each scene's random key folded with its try number (0 keeps the key)."""
+    """The machine state with each scene's random key folded with its try number and its candidate skip set to
+    TRY_SKIP times it (try 0 keeps both)."""
     folded = jax.vmap(jax.random.fold_in)(oracle.key, tries)
-    return oracle.replace(key=select_rows(np.asarray(tries) > 0, folded, oracle.key))
+    rows = np.asarray(tries) > 0
+    skip = jnp.where(rows, TRY_SKIP * jnp.asarray(tries, jnp.int32), oracle.skip)
+    return oracle.replace(key=select_rows(rows, folded, oracle.key), skip=skip)
 
 
 def segment_starts(before: machine.OracleState, after: machine.OracleState) -> np.ndarray:

@@ -118,6 +118,7 @@ class OracleState:
     stage_steps: jnp.ndarray
     skill_steps: jnp.ndarray
     attempt: jnp.ndarray
+    skip: jnp.ndarray          # (B,) best candidates a backtracking try passes over (backtrack.with_try)
     lost: jnp.ndarray          # (B,) consecutive steps without the grasp/touch a skill needs
     needs_plan: jnp.ndarray
     failed: jnp.ndarray
@@ -178,7 +179,7 @@ def init(chains: dict, data, geometry: PartGeometry, keys: jax.Array) -> OracleS
     fields = {k: jnp.asarray(v) for k, v in chains.items()}
     zeros = jnp.zeros(batch, jnp.int32)
     return OracleState(
-        **fields, skill=zeros, stage=zeros, stage_steps=zeros, skill_steps=zeros, attempt=zeros, lost=zeros,
+        **fields, skill=zeros, stage=zeros, stage_steps=zeros, skill_steps=zeros, attempt=zeros, skip=zeros, lost=zeros,
         needs_plan=fields["kind"][:, 0] <= TOUCH, failed=jnp.zeros(batch, bool),
         failed_skill=jnp.full(batch, -1, jnp.int32), p0=jnp.asarray(data.object_pos, jnp.float32), masks=masks,
         cmd_pos=jnp.asarray(data.tcp_pos, jnp.float32), cmd_quat=jnp.asarray(data.tcp_quat, jnp.float32),
@@ -310,7 +311,7 @@ def _plan_grasp(o: OracleState, data, geo: PartGeometry, kinematics, q):
         return lookahead.outlook(kinematics, joints[i], positions[i], quats[i], chain, index, data.object_pos,
                                  object_points, object_valid, part_vector)
 
-    preferred = _first_preferred(reachable, clear, o.attempt + 1)
+    preferred = _first_preferred(reachable, clear, o.attempt + o.skip + 1)
     return _take_candidate(o, key, o.kind[index] == GRASP, positions, quats, approach, reachable, preferred)
 
 
@@ -358,7 +359,7 @@ def _take_candidate(o: OracleState, key, kind_matches, positions, quats, axes, r
     left, then fail the skill."""
     order = jnp.argsort(jnp.where(preferred, 0, 1) * positions.shape[0] + jnp.arange(positions.shape[0]))
     rank = jnp.cumsum(reachable[order]) - 1
-    chosen = reachable[order] & (rank == jnp.minimum(o.attempt, reachable.sum() - 1))
+    chosen = reachable[order] & (rank == jnp.minimum(o.attempt + o.skip, reachable.sum() - 1))
     found = chosen.any()
     pick = order[jnp.argmax(chosen)]
     need = o.needs_plan & kind_matches
@@ -692,7 +693,7 @@ def _act_one(o: OracleState, data, geo: PartGeometry, rows, facts, env, follow_e
         stage=jnp.where(finished, 0, jnp.where(keep, o.stage, next_stage)),
         stage_steps=jnp.where(finished | (next_stage != stage), 0, o.stage_steps + 1),
         skill_steps=jnp.where(finished, 0, o.skill_steps + 1),
-        attempt=jnp.where(finished, 0, attempt), lost=jnp.where(finished, 0, lost),
+        attempt=jnp.where(finished, 0, attempt), skip=jnp.where(finished, 0, o.skip), lost=jnp.where(finished, 0, lost),
         needs_plan=running & (o.needs_plan | starts_plan | (replan & ~out_of_attempts)),
         failed=o.failed | fail, failed_skill=jnp.where(fail, o.skill, o.failed_skill),
         p0=jnp.where(finished, data.object_pos, o.p0),
