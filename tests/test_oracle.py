@@ -430,8 +430,9 @@ def test_the_lazy_outlook_picks_the_candidate_checking_every_one_picks():
         clear = jnp.asarray(rng.random(16) < 0.5)
         for attempt, skip in itertools.product(range(3), (0, backtrack.TRY_SKIP)):
             state = machine.OracleState(**{f.name: jnp.zeros(()) for f in dataclasses.fields(machine.OracleState)})
-            state = state.replace(attempt=jnp.asarray(attempt), skip=jnp.asarray(skip), needs_plan=jnp.asarray(True), key=jnp.zeros(2),
-                                  target_pos=jnp.zeros(3), target_quat=jnp.zeros(4), approach=jnp.zeros(3),
+            state = state.replace(attempt=jnp.asarray(attempt), skip=jnp.asarray(skip), needs_plan=jnp.asarray(True),
+                                  key=jnp.zeros(2), target_pos=jnp.zeros(3), target_quat=jnp.zeros(4),
+                                  approach=jnp.zeros(3),
                                   failed=jnp.asarray(False), failed_skill=jnp.asarray(-1))
             positions = jnp.asarray(rng.random((16, 3)))
             lazy = machine._first_preferred(reachable, lambda i: clear[i], attempt + skip + 1)

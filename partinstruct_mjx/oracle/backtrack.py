@@ -4,9 +4,9 @@ A segment is a grasp or touch skill and the skills after it up to the next grasp
 does with one contact. When a segment fails (the oracle fails a skill, or the episode ends without success), the
 scene goes back to the state saved when the segment started (physics, environment and machine state) and the oracle
 plans again with other random draws (another grasp or touch sample, whose best candidates it passes over: they are
-most often the one that failed), up to `tries` times in all. The demonstration
-keeps only the steps of the try that stands, so it is one real trajectory from the episode's start: its actions,
-replayed from the initial state, reproduce it. A try that finds no candidate at all fails like any other.
+most often the one that failed), up to `tries` times in all. The demonstration keeps only the steps of the try that
+stands, so it is one real trajectory from the episode's start: its actions, replayed from the initial state,
+reproduce it. A try that finds no candidate at all fails like any other.
 """
 
 from __future__ import annotations

@@ -198,10 +198,9 @@ def init(chains: dict, data, geometry: PartGeometry, keys: jax.Array) -> OracleS
 
 def plan(oracle: OracleState, data, geometry: PartGeometry, kinematics, joint_targets) -> OracleState:
     """Plan for every environment that asks (`needs_plan`): the grasp or touch pose at the start of those skills
-    (the `attempt`-th reachable candidate in rank order; an empty sample is drawn again on the next step until
-    MAX_ATTEMPTS, then the skill fails), the turn at the start of a
-    rotation (rotation.py). The others pass through; each kind is computed only when some environment needs it.
-    `data` is a SceneState or its `for_jit()`."""
+    (the (`attempt` + `skip`)-th reachable candidate in rank order; an empty sample is drawn again on the next step
+    until MAX_ATTEMPTS, then the skill fails), the turn at the start of a rotation (rotation.py). The others pass
+    through; each kind is computed only when some environment needs it. `data` is a SceneState or its `for_jit()`."""
     data = unpacked(data)
     index = jnp.clip(oracle.skill, 0, progress.MAX_SKILLS - 1)[:, None]
     kind = jnp.take_along_axis(oracle.kind, index, axis=1)[:, 0]
@@ -353,10 +352,10 @@ def _object_cloud(data, geo: PartGeometry):
 
 
 def _take_candidate(o: OracleState, key, kind_matches, positions, quats, axes, reachable, preferred) -> OracleState:
-    """Take the `attempt`-th reachable candidate in rank order, the `preferred` ones (a clear outlook) first (a
-    retry skips the ones tried before; the last one when fewer are left) as the grasp or touch pose. Nothing found:
-    the candidates are a random sample (a thin part has few grasps), so draw again next step while attempts are
-    left, then fail the skill."""
+    """Take the (`attempt` + `skip`)-th reachable candidate in rank order, the `preferred` ones (a clear outlook)
+    first (a retry skips the ones tried before; the last one when fewer are left) as the grasp or touch pose.
+    Nothing found: the candidates are a random sample (a thin part has few grasps), so draw again next step while
+    attempts are left, then fail the skill."""
     order = jnp.argsort(jnp.where(preferred, 0, 1) * positions.shape[0] + jnp.arange(positions.shape[0]))
     rank = jnp.cumsum(reachable[order]) - 1
     chosen = reachable[order] & (rank == jnp.minimum(o.attempt + o.skip, reachable.sum() - 1))
