@@ -38,14 +38,13 @@ def _env(episode, batch=1):
 def _clouds(env, state, part_name):
     data = jax.tree_util.tree_map(lambda x: jnp.asarray(x)[0], state.data)
     geo = env.geometry
-    world = predicates.world_clouds(data, geo)
     part = env.part_names.index(part_name)
     masks = state.task.masks[0]
-    part_points, part_valid = predicates.part_cloud(data, geo, masks, part, world)
+    part_points, part_valid = predicates.part_cloud(data, geo, masks, part)
     whole = geo.whole
     normals = quat_rotate(data.body_quat[geo.bodies[whole]], geo.normals[whole])
     part_normals = quat_rotate(data.body_quat[geo.bodies[part]], geo.normals[part])
-    return world[whole], normals, geo.valid[whole], part_points, part_normals, part_valid
+    return predicates.object_points(data, geo), normals, geo.valid[whole], part_points, part_normals, part_valid
 
 
 def test_grasp_candidates_close_on_the_part(episodes):
@@ -206,14 +205,13 @@ def test_push_point_presses_low_on_the_face_opposite_the_push_near_the_middle(ep
     with _env(episode) as env:
         state = env.reset(jax.random.PRNGKey(0), [episode])
         data = jax.tree_util.tree_map(lambda x: jnp.asarray(x)[0], state.data)
-        world = predicates.world_clouds(data, env.geometry)
         whole = env.geometry.whole
-        _, _, _, part_points, _, part_valid = _clouds(env, state, episode.chain[0].part)
-        point, found = pushing.push_point(part_points, part_valid, world[whole], env.geometry.valid[whole],
+        object_points, _, _, part_points, _, part_valid = _clouds(env, state, episode.chain[0].part)
+        point, found = pushing.push_point(part_points, part_valid, object_points, env.geometry.valid[whole],
                                           jnp.asarray(direction))
     assert bool(found)
     point, centre = np.asarray(point), np.asarray(data.object_pos)
-    bottom = float(np.asarray(world[whole])[:, 2].min())
+    bottom = float(np.asarray(object_points)[:, 2].min())
     # Low enough that the push cannot tip the bottle (about 3 cm from its centre to its leading edge), behind the
     # object as seen along the push, close to the line through its middle.
     assert bottom + pushing.TIP_CLEARANCE <= point[2] <= bottom + 0.045

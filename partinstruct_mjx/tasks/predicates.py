@@ -34,20 +34,9 @@ MIN_TCP_DISTANCE = 0.05
 FACING_ANGLE = 0.5
 
 
-def world_clouds(state, geo: PartGeometry) -> jnp.ndarray:
-    """World points (K, M, 3) of every part row for one environment: transform once, then index per predicate."""
-    return world_points(state.body_pos, state.body_quat, geo.points, geo.bodies)
-
-
-def part_cloud(state, geo: PartGeometry, masks: jnp.ndarray, part: jnp.ndarray, world: jnp.ndarray | None = None):
-    """World points (M, 3) and validity (M,) of part row `part` for one environment; `masks` (7, M) are spatial.
-
-    `world` is `world_clouds(state, geo)` when the caller already has it (it saves the transform).
-    """
-    if world is None:
-        points = world_points(state.body_pos, state.body_quat, geo.points[part], geo.bodies[part])
-    else:
-        points = world[part]
+def part_cloud(state, geo: PartGeometry, masks: jnp.ndarray, part: jnp.ndarray):
+    """World points (M, 3) and validity (M,) of part row `part` for one environment; `masks` (7, M) are spatial."""
+    points = world_points(state.body_pos, state.body_quat, geo.points[part], geo.bodies[part])
     spatial = part - geo.num_semantic
     is_spatial = (spatial >= 0) & (spatial < masks.shape[0])
     mask = jnp.where(is_spatial, masks[jnp.clip(spatial, 0, masks.shape[0] - 1)], True)
@@ -59,15 +48,13 @@ def masked_mean(points: jnp.ndarray, valid: jnp.ndarray) -> jnp.ndarray:
     return (points * valid[:, None]).sum(axis=0) / jnp.maximum(valid.sum(), 1)
 
 
-def object_points(state, geo: PartGeometry, world: jnp.ndarray | None = None) -> jnp.ndarray:
+def object_points(state, geo: PartGeometry) -> jnp.ndarray:
     """World points of the whole object (M, 3)."""
-    if world is not None:
-        return world[geo.whole]
     return world_points(state.body_pos, state.body_quat, geo.points[geo.whole], geo.bodies[geo.whole])
 
 
-def on_table(state, geo: PartGeometry, world=None) -> jnp.ndarray:
-    return object_points(state, geo, world)[:, 2].min() <= TABLE_HEIGHT + ON_TABLE_DISTANCE
+def on_table(state, geo: PartGeometry) -> jnp.ndarray:
+    return object_points(state, geo)[:, 2].min() <= TABLE_HEIGHT + ON_TABLE_DISTANCE
 
 
 def gripper_open(state) -> jnp.ndarray:
@@ -82,14 +69,14 @@ def at_position(state, target: jnp.ndarray, threshold: jnp.ndarray) -> jnp.ndarr
     return jnp.linalg.norm(state.object_pos - target) < threshold
 
 
-def facing(state, geo, masks, part, direction: jnp.ndarray, threshold=FACING_ANGLE, world=None) -> jnp.ndarray:
+def facing(state, geo, masks, part, direction: jnp.ndarray, threshold=FACING_ANGLE) -> jnp.ndarray:
     """The vector from the object origin to the part's mean point is within `threshold` rad of `direction`."""
-    return points_along(part_vector(state, geo, masks, part, world), direction, threshold)
+    return points_along(part_vector(state, geo, masks, part), direction, threshold)
 
 
-def part_vector(state, geo, masks, part, world=None) -> jnp.ndarray:
+def part_vector(state, geo, masks, part) -> jnp.ndarray:
     """(3,) from the object origin to the part's mean point: the vector FACING measures."""
-    points, valid = part_cloud(state, geo, masks, part, world)
+    points, valid = part_cloud(state, geo, masks, part)
     return masked_mean(points, valid) - state.object_pos
 
 
@@ -99,16 +86,15 @@ def points_along(vector: jnp.ndarray, direction: jnp.ndarray, threshold) -> jnp.
     return jnp.arccos(jnp.clip(cosine, -1.0, 1.0)) < threshold
 
 
-def grasping(state, geo, masks, part, world=None) -> jnp.ndarray:
+def grasping(state, geo, masks, part) -> jnp.ndarray:
     """One finger presses the object with > 20 N and touches the part (any part for the whole-object row)."""
     on_object, label = _on_object(state, geo)
-    force = (state.contact_force * on_object).sum(axis=-1)
     labelled = on_object & (label == part)
-    points, valid = part_cloud(state, geo, masks, part, world)
+    points, valid = part_cloud(state, geo, masks, part)
     near = on_object & (within(state.contact_pos[..., None, :], points, SPATIAL_CONTACT_DISTANCE) & valid).any(axis=-1)
     is_semantic = part < geo.num_semantic
     on_part = jnp.where(part == geo.whole, on_object, jnp.where(is_semantic, labelled, near)).any(axis=-1)
-    return ((force > GRASP_FORCE) & on_part).any()
+    return (pressing(state, geo) & on_part).any()
 
 
 def fingertip(state) -> jnp.ndarray:
@@ -120,9 +106,9 @@ def fingers_closed(state) -> jnp.ndarray:
     return state.finger_qpos.sum() < FINGERS_CLOSED_WIDTH
 
 
-def touching(state, geo, masks, part, world=None) -> jnp.ndarray:
+def touching(state, geo, masks, part) -> jnp.ndarray:
     """The gripper is closed and its fingertip point is within 1 cm of the part."""
-    return touching_points(state, *part_cloud(state, geo, masks, part, world))
+    return touching_points(state, *part_cloud(state, geo, masks, part))
 
 
 def touching_points(state, points: jnp.ndarray, valid: jnp.ndarray) -> jnp.ndarray:
@@ -135,10 +121,10 @@ def within(a: jnp.ndarray, b: jnp.ndarray, distance: float) -> jnp.ndarray:
     return squared_norm(a - b) < distance * distance
 
 
-def released(state, geo, masks, world=None) -> jnp.ndarray:
+def released(state, geo, masks) -> jnp.ndarray:
     """The release effects (spec 5.2): not grasping, not touching, gripper open, gripper away from the object."""
     whole = jnp.asarray(geo.whole)
-    return (~grasping(state, geo, masks, whole, world) & ~touching(state, geo, masks, whole, world)
+    return (~grasping(state, geo, masks, whole) & ~touching(state, geo, masks, whole)
             & gripper_open(state) & min_distance(state))
 
 
