@@ -319,8 +319,10 @@ def test_slot_rules_judge_the_object_as_it_settles_on_the_table():
 def test_graspable_and_pushable_follow_the_gripper_and_the_physics():
     objects = assets_root() / "objects"
     assert slot_rules.graspable(str(objects / "bottle" / "bottle_002"), 0.0, "neck")
-    # A blade 2-4 mm thick lying flat leaves nothing for the pads above the table.
-    assert not slot_rules.graspable(str(objects / "scissors" / "scissors_006"), 0.0, "blade")
+    # The open pads' tips come down to 3 mm above the table: they pinch a pair of blades raised on the scissors'
+    # finger rings, but not a closed laptop's base, a slab lying on the table.
+    assert slot_rules.graspable(str(objects / "scissors" / "scissors_006"), 0.0, "blade")
+    assert not slot_rules.graspable(str(objects / "laptop" / "laptop_000"), 0.0, "base frame")
     box = slot_rules.part_views(slot_rules.load_object_geometry(str(objects / "box" / "box_000")), 0.0)
     assert box["right"].pushable == {"left"} and box["left"].pushable == {"right"}
     # Pushing a standing bottle at its neck would tip it over.

@@ -154,6 +154,43 @@ def test_flat_knife_handle_is_pinched_above_the_table(episodes):
     assert (tips > candidates.TABLE_HEIGHT).all()
 
 
+def _box_cloud(low, high, spacing=0.003):
+    """Surface points and outward normals of an axis-aligned box."""
+    low, high = np.asarray(low, float), np.asarray(high, float)
+    points, normals = [], []
+    for axis in range(3):
+        others = [a for a in range(3) if a != axis]
+        grids = np.meshgrid(*(np.arange(low[a], high[a] + 1e-9, spacing) for a in others), indexing="ij")
+        for side, value in ((-1.0, low[axis]), (1.0, high[axis])):
+            face = np.zeros((grids[0].size, 3))
+            face[:, others[0]], face[:, others[1]], face[:, axis] = grids[0].ravel(), grids[1].ravel(), value
+            normal = np.zeros(3)
+            normal[axis] = side
+            points.append(face)
+            normals.append(np.tile(normal, (len(face), 1)))
+    return np.concatenate(points), np.concatenate(normals)
+
+
+def test_a_bar_beside_a_wall_is_pinched_with_a_pre_shaped_hand():
+    # A pot's ear: a 1 cm bar 4.5 cm out from a tall wall. Fully open (4 cm), the inner pad would come down on the
+    # wall; opened just past the bar, it fits into the gap.
+    bar_points, bar_normals = _box_cloud([-0.02, -0.005, 0.11], [0.02, 0.005, 0.12])
+    wall_points, wall_normals = _box_cloud([-0.06, -0.07, TABLE_HEIGHT], [0.06, -0.045, 0.14], spacing=0.004)
+    points = jnp.asarray(np.concatenate([bar_points, wall_points]), jnp.float32)
+    normals = jnp.asarray(np.concatenate([bar_normals, wall_normals]), jnp.float32)
+    valid = jnp.ones(len(points), bool)
+    part_valid = jnp.arange(len(points)) < len(bar_points)
+    grasps = candidates.grasp_candidates(points, normals, valid, points, normals, part_valid, jax.random.PRNGKey(0))
+    score, opening = np.asarray(grasps["score"]), np.asarray(grasps["opening"])
+    across_bar = np.isfinite(score) & (np.abs(np.asarray(grasps["closing"])[:, 1]) > 0.9)
+    assert across_bar.any()
+    # Pinched across the bar (1 cm) with each pad OPEN_MARGIN past it; nothing pinches the bar fully open.
+    np.testing.assert_allclose(opening[across_bar], 0.005 + candidates.OPEN_MARGIN, atol=0.002)
+    assert np.abs(np.asarray(grasps["centre"])[across_bar, 1]).max() < 0.003
+    sections = candidates._grown_section(jnp.asarray([-0.03, -0.004, 0.0, 0.003, 0.005, 0.02]), jnp.ones(6, bool))
+    np.testing.assert_allclose(sections, (-0.004, 0.005))
+
+
 def test_oracle_follows_a_skill_mode_env_through_chained_moves(episodes):
     """Grasp, lift, move front in a skill-mode env: the lift runs its full 0.12 m although the env counts it at 0.07,
     and the next move is then judged from the env's p0."""
@@ -430,12 +467,13 @@ def test_the_lazy_outlook_picks_the_candidate_checking_every_one_picks():
             state = machine.OracleState(**{f.name: jnp.zeros(()) for f in dataclasses.fields(machine.OracleState)})
             state = state.replace(attempt=jnp.asarray(attempt), skip=jnp.asarray(skip), needs_plan=jnp.asarray(True),
                                   key=jnp.zeros(2), target_pos=jnp.zeros(3), target_quat=jnp.zeros(4),
-                                  approach=jnp.zeros(3),
+                                  target_open=jnp.zeros(()), approach=jnp.zeros(3),
                                   failed=jnp.asarray(False), failed_skill=jnp.asarray(-1))
             positions = jnp.asarray(rng.random((16, 3)))
             lazy = machine._first_preferred(reachable, lambda i: clear[i], attempt + skip + 1)
             assert not (lazy & ~(reachable & clear)).any()
-            args = (state, jnp.zeros(2), True, positions, jnp.zeros((16, 4)), jnp.zeros((16, 3)), reachable)
+            args = (state, jnp.zeros(2), True, positions, jnp.zeros((16, 4)), jnp.zeros((16, 3)), jnp.zeros(16),
+                    reachable)
             every = machine._take_candidate(*args, reachable & clear)
             assert np.array_equal(machine._take_candidate(*args, lazy).target_pos, every.target_pos)
             # The (attempt + skip)-th reachable candidate in rank order, the clear ones first (the last if fewer).

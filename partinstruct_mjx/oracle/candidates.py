@@ -18,6 +18,7 @@ import numpy as np
 
 from partinstruct_mjx.control.rotations import matrix_to_quat
 from partinstruct_mjx.oracle import pushing as pushing_module
+from partinstruct_mjx.sim.panda import FINGER_OPEN
 from partinstruct_mjx.sim.scene import TABLE_HEIGHT
 from partinstruct_mjx.tasks.predicates import masked_mean
 from partinstruct_mjx.vectors import dot3, norm3
@@ -26,12 +27,19 @@ PAD_CENTRE = 0.0394
 """Distance from the TCP along its z axis to the middle of the finger pads (hand frame z 0.0944 vs 0.055)."""
 PAD_HALF_WIDTH = 0.0125
 PAD_HALF_LENGTH = 0.017
-PAD_OUTER = 0.058
-"""Outer face of an open pad (0.04 opening + 0.014 pad + margin) from the grasp centre, across the fingers."""
+PAD_THICKNESS = 0.018
+"""Depth of a finger pad across the closing axis: an open pad fills [opening, opening + this] from the centre."""
 MAX_GRASP_WIDTH = 0.074
 """Widest object section the 8 cm opening closes on (3 mm clearance on both sides)."""
-PAD_INNER = 0.038
-"""Inner face of an open pad (0.04) from the grasp centre, less a margin: no object point may lie in the pads."""
+PAD_INNER_MARGIN = 0.002
+"""No object point may lie within this of an open pad's inner face."""
+OPEN_MARGIN = 0.01
+SECTION_GAP = 0.008
+SECTION_STEPS = 6
+"""A seed's thin-wall grasp pre-shapes the hand: each pad opens OPEN_MARGIN (m) beyond the section it pinches, so
+a pad fits between a handle's bar and the wall behind it. The section is the points along the closing axis that
+follow each other with gaps under SECTION_GAP (the clouds' spacing is about 4 mm), grown SECTION_STEPS times from
+the grasp line; what lies beyond a larger gap (the wall behind an ear) is left outside the pads."""
 HAND_BACK = 0.028
 """The hand capsule starts this far behind the pads' middle (along the approach, plus margin)."""
 HAND_RADIUS = 0.028
@@ -39,7 +47,7 @@ HAND_RADIUS = 0.028
 HAND_HALF_WIDTH = 0.032
 HAND_HALF_LENGTH = 0.12
 TABLE_CLEARANCE = 0.002
-TIP_CLEARANCE = 0.006
+TIP_CLEARANCE = 0.003
 """Free space the open pads' tips keep from the table and from the object surface ahead of them."""
 MIN_DEPTH = 0.01
 MAX_DEPTH = 0.025
@@ -91,9 +99,9 @@ def tcp_quat(approach: jnp.ndarray, closing: jnp.ndarray) -> jnp.ndarray:
 
 def grasp_candidates(object_points, object_normals, object_valid, part_points, part_normals, part_valid, key,
                      num_seeds: int = NUM_SEEDS, top_down_weight=TOP_DOWN_WEIGHT) -> dict[str, jnp.ndarray]:
-    """Scored grasps for one environment: centre (N, 3), approach (N, 3), closing (N, 3), score (N,), -inf invalid,
-    and checks (N, 7): something between the pads, narrow enough, pads free, hand free, above the table, the part
-    under a pad, antipodal (GRASP_CHECKS).
+    """Scored grasps for one environment: centre (N, 3), approach (N, 3), closing (N, 3), opening (N,) (each
+    finger's opening on the approach), score (N,), -inf invalid, and checks (N, 7): something between the pads,
+    narrow enough, pads free, hand free, above the table, the part under a pad, antipodal (GRASP_CHECKS).
 
     Antipodal sampling: a pad lands on a seed point of the part and closes along its normal; the approach is each
     of APPROACHES made perpendicular to that normal. Points (M, 3) are world-frame with outward unit normals.
@@ -121,18 +129,18 @@ def grasp_candidates(object_points, object_normals, object_valid, part_points, p
         inner = seed - inset * normal
         first, last = _section(inner, approach, object_points, object_valid)
         depth = jnp.clip(0.5 * (first + last), first + MIN_DEPTH, first + MAX_DEPTH)
-        centre, score, checks = _score(inner + depth * approach, approach, normal, object_points,
-                                       object_normals, object_valid, part_points, part_valid, part_centre, extent,
-                                       object_centre, top_down_weight)
-        return centre, approach, jnp.where(length > MIN_APPROACH_COMPONENT, score, -jnp.inf), checks
+        centre, opening, score, checks = _score(inner + depth * approach, approach, normal, ~through, object_points,
+                                                object_normals, object_valid, part_points, part_valid, part_centre,
+                                                extent, object_centre, top_down_weight)
+        return centre, approach, opening, jnp.where(length > MIN_APPROACH_COMPONENT, score, -jnp.inf), checks
 
     per_seed = 2 * APPROACHES.shape[0]
     seed_index = jnp.repeat(jnp.arange(num_seeds), per_seed)
     base = jnp.tile(jnp.asarray(np.concatenate([APPROACHES, APPROACHES])), (num_seeds, 1))
     through = jnp.tile(jnp.arange(per_seed) >= APPROACHES.shape[0], num_seeds)
-    centre, approach, score, checks = jax.vmap(one)(seeds[seed_index], normals[seed_index], base, through)
-    return {"centre": centre, "approach": approach, "closing": normals[seed_index], "score": score,
-            "checks": checks}
+    centre, approach, opening, score, checks = jax.vmap(one)(seeds[seed_index], normals[seed_index], base, through)
+    return {"centre": centre, "approach": approach, "closing": normals[seed_index], "opening": opening,
+            "score": score, "checks": checks}
 
 
 GRASP_CHECKS = ("between", "width", "pads_free", "hand_free", "above_table", "on_part", "antipodal")
@@ -172,54 +180,75 @@ def _section(point, approach, object_points, object_valid):
     return jnp.where(hit.any(), first, 0.0), jnp.where(hit.any(), last, 0.0)
 
 
-def _pad_corners(centre, approach, closing, across):
+def _pad_corners(centre, approach, closing, across, opening):
     """World z of the open pads' tips (4) and of the hand's lower corners (4) for a grasp centred at `centre`."""
-    corners = jnp.array([[su * PAD_HALF_WIDTH, sv * PAD_OUTER, PAD_HALF_LENGTH + 0.002]
-                         for su in (-1, 1) for sv in (-1, 1)]
-                        + [[su * HAND_HALF_WIDTH, sv * 0.085, -HAND_BACK - 0.028] for su in (-1, 1) for sv in (-1, 1)])
-    return centre[2] + corners @ jnp.stack([across[2], closing[2], approach[2]])
+    signs = jnp.array([[su, sv] for su in (-1, 1) for sv in (-1, 1)], jnp.float32)
+    tips = jnp.stack([signs[:, 0] * PAD_HALF_WIDTH, signs[:, 1] * (opening + PAD_THICKNESS),
+                      jnp.full(4, PAD_HALF_LENGTH)], axis=1)
+    hand = jnp.stack([signs[:, 0] * HAND_HALF_WIDTH, signs[:, 1] * 0.085, jnp.full(4, -HAND_BACK - 0.028)], axis=1)
+    return centre[2] + jnp.concatenate([tips, hand]) @ jnp.stack([across[2], closing[2], approach[2]])
 
 
-def _table_back_off(centre, approach, closing, across):
+def _table_back_off(centre, approach, closing, across, opening):
     """Metres a downward grasp at `centre` backs off along its approach so the open pads' tips clear the table."""
-    deficit = TABLE_HEIGHT + TABLE_CLEARANCE + 0.001 - _pad_corners(centre, approach, closing, across)[:4].min()
+    tips = _pad_corners(centre, approach, closing, across, opening)[:4]
+    deficit = TABLE_HEIGHT + TABLE_CLEARANCE + 0.001 - tips.min()
     downward = approach[2] < -MIN_APPROACH_COMPONENT
     return jnp.where(downward & (deficit > 0), deficit / jnp.maximum(-approach[2], 1e-3), 0.0)
 
 
-def _clear_pad_tips(centre, approach, closing, across, object_points, object_valid):
+def _clear_pad_tips(centre, approach, closing, across, opening, object_points, object_valid):
     """The grasp centre backed off along the approach until the open pads' tips stop short of the table (downward
     grasps of flat parts) and of the object surface ahead of them (a lid's knob over the lid): what is left
     between the pads is what they pinch (at most PAD_HALF_LENGTH of back-off for the surface)."""
-    table = _table_back_off(centre, approach, closing, across)
+    table = _table_back_off(centre, approach, closing, across, opening)
     d = object_points - centre
     u, v, t = dot3(d, across), dot3(d, closing), dot3(d, approach)
-    ahead = (object_valid & (jnp.abs(u) < PAD_HALF_WIDTH + 0.003) & (jnp.abs(v) > PAD_INNER - 0.005)
-             & (jnp.abs(v) < PAD_OUTER) & (t > 0))
+    ahead = (object_valid & (jnp.abs(u) < PAD_HALF_WIDTH + 0.003) & (jnp.abs(v) > opening - PAD_INNER_MARGIN - 0.005)
+             & (jnp.abs(v) < opening + PAD_THICKNESS) & (t > 0))
     surface = jnp.maximum(PAD_HALF_LENGTH + TIP_CLEARANCE + 0.001 - jnp.where(ahead, t, jnp.inf).min(), 0.0)
     return centre - jnp.maximum(table, jnp.minimum(surface, PAD_HALF_LENGTH)) * approach
 
 
-def _score(centre, approach, closing, object_points, object_normals, object_valid, part_points, part_valid,
-           part_centre, extent, object_centre, top_down_weight):
-    across = jnp.cross(closing, approach)
-    centre = _clear_pad_tips(centre, approach, closing, across, object_points, object_valid)
+def _grown_section(v, slab):
+    """(low, high) along the closing axis of the run of `slab` points around v = 0 with gaps under SECTION_GAP."""
+    def grow(_, bounds):
+        near = slab & (v > bounds[0] - SECTION_GAP) & (v < bounds[1] + SECTION_GAP)
+        return jnp.where(near, v, jnp.inf).min(), jnp.where(near, v, -jnp.inf).max()
 
-    def local(points):
-        d = points - centre
+    return jax.lax.fori_loop(0, SECTION_STEPS, grow, (jnp.float32(0.0), jnp.float32(0.0)))
+
+
+def _score(centre, approach, closing, pre_shaped, object_points, object_normals, object_valid, part_points,
+           part_valid, part_centre, extent, object_centre, top_down_weight):
+    across = jnp.cross(closing, approach)
+
+    def local(points, at):
+        d = points - at
         return dot3(d, across), dot3(d, closing), dot3(d, approach)
 
-    def pinched(u, v, t):
-        between = object_valid & (jnp.abs(u) < PAD_HALF_WIDTH) & (jnp.abs(t) < PAD_HALF_LENGTH) & (jnp.abs(v) < 0.04)
-        return between, jnp.where(between, v, jnp.inf).min(), jnp.where(between, v, -jnp.inf).max()
+    def section(at):
+        """Shift along the closing axis that centres the pinched section, and the fingers' opening for it."""
+        u, v, t = local(object_points, at)
+        slab = object_valid & (jnp.abs(u) < PAD_HALF_WIDTH) & (jnp.abs(t) < PAD_HALF_LENGTH)
+        wide = slab & (jnp.abs(v) < FINGER_OPEN)
+        grown = _grown_section(v, slab)
+        low = jnp.where(pre_shaped, grown[0], jnp.where(wide, v, jnp.inf).min())
+        high = jnp.where(pre_shaped, grown[1], jnp.where(wide, v, -jnp.inf).max())
+        found = low <= high
+        opening = jnp.where(pre_shaped & found, jnp.minimum(0.5 * (high - low) + OPEN_MARGIN, FINGER_OPEN),
+                            FINGER_OPEN)
+        return jnp.where(found, 0.5 * (low + high), 0.0), opening
 
-    between, v_min, v_max = pinched(*local(object_points))
-    shift = jnp.where(between.any(), 0.5 * (v_min + v_max), 0.0)
+    _, opening = section(centre)
+    centre = _clear_pad_tips(centre, approach, closing, across, opening, object_points, object_valid)
+    shift, opening = section(centre)
     centre = centre + shift * closing
     # Re-centring along a closing axis that is not level moves the pads' tips up or down: clear the table again.
-    centre = centre - _table_back_off(centre, approach, closing, across) * approach
-    u, v, t = local(object_points)
-    between, v_min, v_max = pinched(u, v, t)
+    centre = centre - _table_back_off(centre, approach, closing, across, opening) * approach
+    u, v, t = local(object_points, centre)
+    between = object_valid & (jnp.abs(u) < PAD_HALF_WIDTH) & (jnp.abs(t) < PAD_HALF_LENGTH) & (jnp.abs(v) < opening)
+    v_min, v_max = jnp.where(between, v, jnp.inf).min(), jnp.where(between, v, -jnp.inf).max()
     width = v_max - v_min
     # Antipodal: where each pad lands the surface faces that pad. The net push of a pad is along the mean normal of
     # the front faces in its landing band: its cosine with the closing axis is the contact's tilt (a surface curving
@@ -237,13 +266,14 @@ def _score(centre, approach, closing, object_points, object_normals, object_vali
     antipodal = jnp.minimum(net_cosine(side_max), net_cosine(side_min))
     pads = (object_valid & (jnp.abs(u) < PAD_HALF_WIDTH + 0.003) & (t < PAD_HALF_LENGTH + TIP_CLEARANCE)
             & (t > -PREGRASP_DISTANCE - PAD_HALF_LENGTH - 0.01)
-            & (jnp.abs(v) > PAD_INNER) & (jnp.abs(v) < PAD_OUTER))
+            & (jnp.abs(v) > opening - PAD_INNER_MARGIN) & (jnp.abs(v) < opening + PAD_THICKNESS))
     hand = (object_valid & (t < -HAND_BACK) & (t > -HAND_BACK - PREGRASP_DISTANCE - 0.06)
             & (jnp.abs(u) < HAND_HALF_WIDTH) & (jnp.abs(v) < HAND_HALF_LENGTH))
-    above_table = _pad_corners(centre, approach, closing, across).min() > TABLE_HEIGHT + TABLE_CLEARANCE
+    above_table = _pad_corners(centre, approach, closing, across, opening).min() > TABLE_HEIGHT + TABLE_CLEARANCE
 
-    pu, pv, pt = local(part_points)
-    on_part = part_valid & (jnp.abs(pu) < PAD_HALF_WIDTH) & (jnp.abs(pt) < PAD_HALF_LENGTH) & (jnp.abs(pv) < 0.04)
+    pu, pv, pt = local(part_points, centre)
+    on_part = (part_valid & (jnp.abs(pu) < PAD_HALF_WIDTH) & (jnp.abs(pt) < PAD_HALF_LENGTH)
+               & (jnp.abs(pv) < opening))
     near_pad = on_part & (jnp.abs(pv) > 0.5 * width - 0.006)
     n_between = between.sum()
     target_share = jnp.minimum(on_part.sum() / jnp.maximum(n_between, 1), 1.0)
@@ -255,7 +285,7 @@ def _score(centre, approach, closing, object_points, object_normals, object_vali
     score = (0.3 * target_share + 2.0 * antipodal + top_down_weight * (-approach[2])
              - 1.0 * jnp.linalg.norm(centre - part_centre) / jnp.maximum(extent, 0.02)
              - OFF_CENTRE_WEIGHT * off_centre + 0.2 * jnp.minimum(n_between / 20.0, 1.0))
-    return centre, jnp.where(valid, score, -jnp.inf), checks
+    return centre, opening, jnp.where(valid, score, -jnp.inf), checks
 
 
 TOUCH_SIDES = np.array([[0.0, 1.0, 0.0], [0.0, -1.0, 0.0], [-1.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]],

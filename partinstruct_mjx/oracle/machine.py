@@ -131,6 +131,7 @@ class OracleState:
     grip_width: jnp.ndarray   # (B,) finger opening measured at the previous step
     target_pos: jnp.ndarray   # grasp/touch TCP pose from the planner
     target_quat: jnp.ndarray
+    target_open: jnp.ndarray  # (B,) finger opening a grasp approaches with (pre-shaped to the section it pinches)
     approach: jnp.ndarray     # (B, 3) unit axis the TCP moves along into the target
     turn_axis: jnp.ndarray    # (B, 3) rotate: the planned turn (rotation.py), about turn_pivot
     turn_angle: jnp.ndarray
@@ -186,7 +187,8 @@ def init(chains: dict, data, geometry: PartGeometry, keys: jax.Array) -> OracleS
         finger=jnp.asarray(data.finger_qpos[:, 0], jnp.float32),
         grip_width=jnp.asarray(data.finger_qpos[:, 0], jnp.float32),
         target_pos=jnp.asarray(data.tcp_pos, jnp.float32), target_quat=jnp.asarray(data.tcp_quat, jnp.float32),
-        approach=jnp.zeros((batch, 3), jnp.float32), turn_axis=jnp.zeros((batch, 3), jnp.float32).at[:, 2].set(1.0),
+        target_open=jnp.full(batch, panda.FINGER_OPEN, jnp.float32), approach=jnp.zeros((batch, 3), jnp.float32),
+        turn_axis=jnp.zeros((batch, 3), jnp.float32).at[:, 2].set(1.0),
         turn_angle=jnp.zeros(batch, jnp.float32), turn_pivot=jnp.zeros((batch, 3), jnp.float32),
         turn_raise=jnp.zeros(batch, jnp.float32), anchor_pos=jnp.asarray(data.tcp_pos, jnp.float32),
         anchor_quat=jnp.asarray(data.tcp_quat, jnp.float32), turn_progress=jnp.zeros(batch, jnp.float32),
@@ -297,6 +299,7 @@ def _plan_grasp(o: OracleState, data, geo: PartGeometry, kinematics, q):
     quats = jnp.stack([jnp.where(near, quat_a, quat_b), jnp.where(near, quat_b, quat_a)], 1).reshape(-1, 4)
     approach = jnp.repeat(approach, 2, axis=0)
     positions = jnp.repeat(grasps["centre"][top], 2, axis=0) - candidates.PAD_CENTRE * approach
+    openings = jnp.repeat(grasps["opening"][top], 2)
     reached, joints = jax.vmap(_reachable, in_axes=(None, None, 0, 0, 0))(kinematics, q, positions, quats, approach)
     reachable = jnp.repeat(jnp.isfinite(top_score), 2) & reached
     # Grasps after which the arm can carry out the rest of the chain (lookahead.py) come first.
@@ -311,7 +314,7 @@ def _plan_grasp(o: OracleState, data, geo: PartGeometry, kinematics, q):
                                  object_points, object_valid, part_vector)
 
     preferred = _first_preferred(reachable, clear, o.attempt + o.skip + 1)
-    return _take_candidate(o, key, o.kind[index] == GRASP, positions, quats, approach, reachable, preferred)
+    return _take_candidate(o, key, o.kind[index] == GRASP, positions, quats, approach, openings, reachable, preferred)
 
 
 def _first_preferred(reachable, check, wanted):
@@ -343,7 +346,8 @@ def _plan_touch(o: OracleState, data, geo: PartGeometry, kinematics, q):
     positions = touch_point[order] - (predicates.FINGERTIP_OFFSET - candidates.TOUCH_DEPTH) * axes
     reached, _ = jax.vmap(_reachable, in_axes=(None, None, 0, 0, 0))(kinematics, q, positions, quats, axes)
     reachable = jnp.isfinite(touch_score[order]) & reached
-    return _take_candidate(o, key, o.kind[index] == TOUCH, positions, quats, axes, reachable, reachable)
+    closed = jnp.full(positions.shape[0], panda.FINGER_CLOSED)
+    return _take_candidate(o, key, o.kind[index] == TOUCH, positions, quats, axes, closed, reachable, reachable)
 
 
 def _object_cloud(data, geo: PartGeometry):
@@ -351,7 +355,8 @@ def _object_cloud(data, geo: PartGeometry):
     return predicates.object_points(data, geo)[::2], geo.valid[geo.whole][::2]
 
 
-def _take_candidate(o: OracleState, key, kind_matches, positions, quats, axes, reachable, preferred) -> OracleState:
+def _take_candidate(o: OracleState, key, kind_matches, positions, quats, axes, openings, reachable,
+                    preferred) -> OracleState:
     """Take the (`attempt` + `skip`)-th reachable candidate in rank order, the `preferred` ones (a clear outlook)
     first (a retry skips the ones tried before; the last one when fewer are left) as the grasp or touch pose.
     Nothing found: the candidates are a random sample (a thin part has few grasps), so draw again next step while
@@ -368,7 +373,7 @@ def _take_candidate(o: OracleState, key, kind_matches, positions, quats, axes, r
     return o.replace(
         target_pos=jnp.where(take, positions[pick], o.target_pos),
         target_quat=jnp.where(take, quats[pick], o.target_quat),
-        approach=jnp.where(take, axes[pick], o.approach),
+        approach=jnp.where(take, axes[pick], o.approach), target_open=jnp.where(take, openings[pick], o.target_open),
         stage=jnp.where(take, 1, o.stage), stage_steps=jnp.where(take, 0, o.stage_steps),
         attempt=o.attempt + (empty & ~fail), needs_plan=o.needs_plan & ~(take | fail), key=jnp.where(need, key, o.key),
         failed=o.failed | fail, failed_skill=jnp.where(fail & ~o.failed, o.skill, o.failed_skill))
@@ -539,8 +544,8 @@ def _act_one(o: OracleState, data, geo: PartGeometry, rows, facts, env, follow_e
     reach_goal = approach_goals[jnp.clip(stage, 0, 6)]
     reach_speed = jnp.where(stage == 3, jnp.where(is_touch, PUSH_SPEED, APPROACH_SPEED), FREE_SPEED)
     reach_quat = jnp.where(stage == 0, o.cmd_quat, o.target_quat)
-    reach_finger = jnp.where(is_touch, panda.FINGER_CLOSED,
-                             jnp.where((stage == 4) | (stage == 5), panda.FINGER_CLOSED, panda.FINGER_OPEN))
+    reach_finger = jnp.where(is_touch | (stage == 4) | (stage == 5), panda.FINGER_CLOSED,
+                             jnp.where((stage >= 1) & (stage <= 3), o.target_open, panda.FINGER_OPEN))
     pos_r, quat_r = _toward(o.cmd_pos, o.cmd_quat, reach_goal, reach_quat, reach_speed, TURN_SPEED)
     at_goal = (jnp.linalg.norm(pos_r - reach_goal) < 1e-6) & (jnp.linalg.norm(tcp - reach_goal) < ARRIVED)
     reach_next = jnp.select(
