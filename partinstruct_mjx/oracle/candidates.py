@@ -227,10 +227,15 @@ def _score(centre, approach, closing, pre_shaped, object_points, object_normals,
         d = points - at
         return dot3(d, across), dot3(d, closing), dot3(d, approach)
 
+    def facing_pads(u, t):
+        """Points level with the pads' faces (across and along the approach); what lies between the pads of these
+        depends on the opening."""
+        return (jnp.abs(u) < PAD_HALF_WIDTH) & (jnp.abs(t) < PAD_HALF_LENGTH)
+
     def section(at):
         """Shift along the closing axis that centres the pinched section, and the fingers' opening for it."""
         u, v, t = local(object_points, at)
-        slab = object_valid & (jnp.abs(u) < PAD_HALF_WIDTH) & (jnp.abs(t) < PAD_HALF_LENGTH)
+        slab = object_valid & facing_pads(u, t)
         wide = slab & (jnp.abs(v) < FINGER_OPEN)
         grown = _grown_section(v, slab)
         low = jnp.where(pre_shaped, grown[0], jnp.where(wide, v, jnp.inf).min())
@@ -247,7 +252,7 @@ def _score(centre, approach, closing, pre_shaped, object_points, object_normals,
     # Re-centring along a closing axis that is not level moves the pads' tips up or down: clear the table again.
     centre = centre - _table_back_off(centre, approach, closing, across, opening) * approach
     u, v, t = local(object_points, centre)
-    between = object_valid & (jnp.abs(u) < PAD_HALF_WIDTH) & (jnp.abs(t) < PAD_HALF_LENGTH) & (jnp.abs(v) < opening)
+    between = object_valid & facing_pads(u, t) & (jnp.abs(v) < opening)
     v_min, v_max = jnp.where(between, v, jnp.inf).min(), jnp.where(between, v, -jnp.inf).max()
     width = v_max - v_min
     # Antipodal: where each pad lands the surface faces that pad. The net push of a pad is along the mean normal of
@@ -272,8 +277,7 @@ def _score(centre, approach, closing, pre_shaped, object_points, object_normals,
     above_table = _pad_corners(centre, approach, closing, across, opening).min() > TABLE_HEIGHT + TABLE_CLEARANCE
 
     pu, pv, pt = local(part_points, centre)
-    on_part = (part_valid & (jnp.abs(pu) < PAD_HALF_WIDTH) & (jnp.abs(pt) < PAD_HALF_LENGTH)
-               & (jnp.abs(pv) < opening))
+    on_part = part_valid & facing_pads(pu, pt) & (jnp.abs(pv) < opening)
     near_pad = on_part & (jnp.abs(pv) > 0.5 * width - 0.006)
     n_between = between.sum()
     target_share = jnp.minimum(on_part.sum() / jnp.maximum(n_between, 1), 1.0)
