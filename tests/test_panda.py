@@ -4,6 +4,7 @@ import mujoco
 import numpy as np
 
 from partinstruct_mjx import paths
+from partinstruct_mjx.oracle import candidates
 from partinstruct_mjx.sim import panda
 
 
@@ -93,3 +94,19 @@ def test_closed_gripper_presses_a_thin_part_harder_than_grasping_needs():
     data.act[model.actuator_actadr[gripper]] = panda.FINGER_OPEN
     mujoco.mj_forward(model, data)
     assert abs(data.actuator_force[gripper]) < 1e-6
+
+
+def test_finger_pads_are_the_pads_the_grasp_planner_assumes():
+    # The planner places what it pinches on a pad PAD_CENTRE +- PAD_HALF_LENGTH along the TCP's z; a shorter
+    # physical pad left a pot's ear above its upper edge, where the closing finger pushed it away.
+    model, data = _robot()
+    mujoco.mj_kinematics(model, data)
+    tcp = model.site("tcp").id
+    axis = data.site_xmat[tcp].reshape(3, 3)[:, 2]
+    for name in ("left_pad", "right_pad"):
+        pad = model.geom(name).id
+        half_length = model.geom_size[pad][2]
+        along = (data.geom_xpos[pad] - data.site_xpos[tcp]) @ axis
+        np.testing.assert_allclose([along, half_length], [candidates.PAD_CENTRE, candidates.PAD_HALF_LENGTH],
+                                   atol=2e-4)
+        np.testing.assert_allclose(np.abs(data.geom_xmat[pad].reshape(3, 3)[:, 2] @ axis), 1.0, atol=1e-6)
