@@ -16,6 +16,7 @@ from partinstruct_mjx.env import EnvConfig, PartInstructEnv, hold_action
 from partinstruct_mjx.oracle import backtrack, candidates, machine, pushing, rotation
 from partinstruct_mjx.oracle.rollout import OraclePolicy, run_oracle
 from partinstruct_mjx.paths import assets_root
+from partinstruct_mjx.sim import panda
 from partinstruct_mjx.sim.panda import HOME_ARM_QPOS
 from partinstruct_mjx.sim.scene import TABLE_HEIGHT, build_scene
 from partinstruct_mjx.tasks import predicates
@@ -189,6 +190,26 @@ def test_a_bar_beside_a_wall_is_pinched_with_a_pre_shaped_hand():
     assert np.abs(np.asarray(grasps["centre"])[across_bar, 1]).max() < 0.003
     sections = candidates._grown_section(jnp.asarray([-0.03, -0.004, 0.0, 0.003, 0.005, 0.02]), jnp.ones(6, bool))
     np.testing.assert_allclose(sections, (-0.004, 0.005))
+
+
+def test_a_pre_shaped_grasp_approaches_with_its_opening(episodes):
+    # dispenser_000, type 1 ('right'): the planner's grasp pinches a thin section, so the fingers open to it, not
+    # fully, from the via point until they close.
+    episode = next(e for e in episodes if e.obj_id == "dispenser_000" and e.task_type == 1)
+    with _env(episode) as env:
+        state = env.reset(jax.random.PRNGKey(0), [episode])
+        policy = OraclePolicy()
+        policy.reset(env, state, jax.random.PRNGKey(0))
+        approaching = []
+        for _ in range(40):
+            action = policy.act(env, state)
+            if 1 <= int(policy.state.stage[0]) <= 3:
+                approaching.append((float(action[0, -1]), float(policy.state.target_open[0])))
+            state = env.step(state, action)
+    assert approaching
+    fingers, openings = np.array(approaching).T
+    assert openings.max() < panda.FINGER_OPEN - 0.002
+    np.testing.assert_allclose(fingers, openings, atol=1e-6)
 
 
 def test_oracle_follows_a_skill_mode_env_through_chained_moves(episodes):
