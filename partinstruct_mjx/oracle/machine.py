@@ -96,9 +96,11 @@ RIM_OVER = 0.003
 far past its rear edge (TOUCHING holds within 1 cm). Pressing the face itself, the pads' edge met it first and
 stopped the fingertip, the middle of the pads' end, 1-1.4 cm away."""
 LIFT_START_SPEED = 0.0015
-LIFT_ACCELERATION = 0.00025
-"""A carry's commanded speed starts at this (m per step) and grows by this per step up to CARRY_SPEED (34 steps):
-the grip takes the object's weight gently (twice these lost 8-9 more of 880 episodes, mostly in carries)."""
+LIFT_ACCELERATION = 0.000125
+"""A carry's commanded speed starts at this (m per step) and grows by this per step up to CARRY_SPEED (68 steps;
+a 0.12 m carry is commanded over about 33 steps, 26 at twice the rate): the grip takes the object's weight gently.
+Twice this acceleration lost 8-12 of 880 episodes, mostly objects slipping out in carries; four times it another
+8-9 (docs/oracle.md)."""
 
 
 @struct.dataclass
