@@ -7,6 +7,7 @@ import math
 import string
 from collections import Counter
 
+import numpy as np
 import pytest
 
 from partinstruct_mjx.assets.catalog import load_catalog
@@ -328,3 +329,16 @@ def test_graspable_and_pushable_follow_the_gripper_and_the_physics():
     # Pushing a standing bottle at its neck would tip it over.
     bottle = slot_rules.part_views(slot_rules.load_object_geometry(str(objects / "bottle" / "bottle_002")), 0.0)
     assert not bottle["neck"].pushable and bottle["body"].pushable == {"left", "right", "front", "back"}
+
+
+def test_turns_on_the_table_only_for_parts_a_yaw_can_make_face_the_goal():
+    # A standing bottle's 'front' lies 2.9 cm out and 2.5 cm below its origin: a yaw turn keeps that 0.71 rad
+    # elevation, so FACING (0.5 rad) could never hold; 5 mm below, it can.
+    def view(z):
+        return slot_rules.PartView(offset=np.array([-0.029, 0.0, z]), facing="front", exposed=frozenset(),
+                                   pushable=frozenset())
+
+    for role in ("rotate_table", "opposite"):
+        assert slot_rules.direction_candidates(role, view(-0.025), []) == []
+        assert slot_rules.direction_candidates(role, view(-0.005), [])
+    assert slot_rules.direction_candidates("rotate_air", view(-0.025), [])

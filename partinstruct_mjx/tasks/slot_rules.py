@@ -19,8 +19,9 @@ episode's yaw:
 * touch: exposed;
 * rotate: centroid >= 2 cm from the object origin (FACING is measured from it);
   in the air any direction but the one the part faces now; on the table only horizontal ones and only for parts
-  that face a horizontal direction now (a yaw turn cannot change a part that faces up); type 15 turns the part to
-  the opposite of the direction it faces now;
+  that face a horizontal direction now and lie within MAX_TABLE_TURN_ELEVATION of level (a yaw turn changes
+  neither a part that faces up nor how far its centroid lies above or below the origin, and FACING allows 0.5
+  rad in all); type 15 turns the part to the opposite of the direction it faces now;
 * move / push: horizontal, the object stays in the workspace (p0 + 0.12 dir within WORKSPACE); a push towards dir
   touches the part from the other side, so the part must be exposed on OPPOSITE[dir] and have a push point there
   (oracle/pushing.py: low enough not to tip the object, near the line through its middle);
@@ -81,6 +82,10 @@ YAW_STEP = math.radians(5.0)
 
 MIN_FACING_OFFSET = 0.02
 """Closest a rotated part's centroid may be to the object origin (m) for FACING to be well defined."""
+MAX_TABLE_TURN_ELEVATION = 0.4
+"""Largest angle (rad) between a part's FACING vector and the horizontal for a turn on the table: a yaw turn keeps
+that angle, and FACING (0.5 rad) must still hold with the oracle's heading tolerance (0.2 rad). A standing bottle's
+'front' lies 2.9 cm out and 2.5 cm below its origin (0.71 rad): no turn on the table could make it face right."""
 WORKSPACE = ((-0.2, 0.25), (-0.25, 0.35))
 """x and y bounds a move or push must keep the object in."""
 
@@ -337,7 +342,9 @@ def direction_candidates(role: str, view: PartView | None, moves: list[str]) -> 
     facing = view.facing
     if role == "rotate_air":
         return [w for w in DIRECTIONS if w != facing]
-    if facing not in HORIZONTAL or float(np.linalg.norm(view.offset[:2])) < MIN_FACING_OFFSET:
+    level = float(np.linalg.norm(view.offset[:2]))
+    if (facing not in HORIZONTAL or level < MIN_FACING_OFFSET
+            or math.atan2(abs(float(view.offset[2])), level) > MAX_TABLE_TURN_ELEVATION):
         return []
     return [OPPOSITE[facing]] if role == "opposite" else [w for w in HORIZONTAL if w != facing]
 
