@@ -16,7 +16,7 @@ import pytest
 import trimesh
 
 from partinstruct_mjx.assets.convert import ConvertConfig, convert_objects, summary_table
-from partinstruct_mjx.assets.decompose import DecompositionConfig, hull_budgets
+from partinstruct_mjx.assets.decompose import DecompositionConfig, _convex, hull_budgets
 from partinstruct_mjx.assets.geometry import assemble
 from partinstruct_mjx.assets.partnet import is_semantic_label, part_label, read_partnet_object
 from partinstruct_mjx.assets.timeout_pool import run_jobs
@@ -105,7 +105,9 @@ def test_objects_load_in_mjx_and_settle_on_the_table(converted):
         adr = scene.object_qpos_adr
         assert np.abs(state.object_pos - settled.object_pos).max() < 1e-3, object_id
         assert np.abs(state.qpos[0, adr + 7:] - settled.qpos[0, adr + 7:]).max(initial=0) < 0.01, object_id
-        assert np.abs(state.qvel[0, scene.object_dof_adr:]).max() < 0.02, object_id
+        # The pose, not the velocity: a pot resting on several hulls chatters at up to 0.2 rad/s in place.
+        turned = 2 * np.arccos(min(1.0, abs(float(state.object_quat[0] @ settled.object_quat[0]))))
+        assert turned < 0.01, object_id
         depths = backend.datas[0].contact.dist[: backend.datas[0].ncon]
         assert depths.min(initial=0.0) > -2e-3, object_id
 
@@ -244,6 +246,28 @@ def test_hull_budgets_stay_within_limits():
     assert sum(budgets) <= 16 and min(budgets) >= 1 and max(budgets) <= 8 and budgets[0] == max(budgets)
     with pytest.raises(AssetError, match="17 collision parts exceed the budget of 16"):
         hull_budgets([1.0] * 17, config)
+
+
+def test_reduced_hulls_keep_the_flat_base_they_stand_on():
+    # The built-in bottle_000's body: one 482-vertex hull (CoACD keeps it whole), reduced to 32
+    # vertices. Farthest points alone kept one vertex of its flat base, and the bottle fell over at every reset.
+    from partinstruct_mjx.assets.procedural.generator import build_object
+
+    spec = build_object("bottle", 0)
+    (body,) = [part for link in spec.links for part in link.parts if part.label == "body"]
+    vertices, _ = _convex(np.asarray(body.pieces[0].mesh.vertices), 32)
+    assert len(vertices) <= 32
+    base = vertices[vertices[:, 2] < vertices[:, 2].min() + 1e-4]
+    assert len(base) >= 4 and min(np.ptp(base[:, 0]), np.ptp(base[:, 1])) > 0.02
+
+
+def test_builtin_bottles_stand_upright():
+    from partinstruct_mjx.paths import assets_root
+    from partinstruct_mjx.tasks.slot_rules import settled_tilt
+
+    for name in ("bottle_000", "bottle_007"):
+        tilt = settled_tilt(assets_root() / "objects" / "bottle" / name / "object.xml")
+        assert math.degrees(math.acos(min(1.0, tilt[2, 2]))) < 1.0, name
 
 
 def test_timeout_pool_kills_slow_jobs_and_reports_errors():

@@ -18,7 +18,7 @@ import trimesh
 from partinstruct_mjx.atomic import atomic_write
 from partinstruct_mjx.errors import AssetError
 
-CONVERTER_VERSION = "3"
+CONVERTER_VERSION = "4"
 """Bumped whenever a change alters the decomposition output for the same input."""
 
 MIN_THICKNESS = 1e-3
@@ -100,12 +100,33 @@ def decompose(vertices: np.ndarray, faces: np.ndarray, budget: int, config: Deco
 
 
 def _convex(points: np.ndarray, max_vertices: int) -> Hull:
-    """Convex hull of `points` with at most `max_vertices` vertices (farthest-point subset), never flat."""
+    """Convex hull of `points` with at most `max_vertices` vertices (`_reduced`), never flat."""
     points = _thicken(np.unique(points, axis=0))
     hull = trimesh.convex.convex_hull(points)
     if len(hull.vertices) > max_vertices:
-        hull = trimesh.convex.convex_hull(_farthest_points(np.asarray(hull.vertices), max_vertices))
+        hull = trimesh.convex.convex_hull(_reduced(np.asarray(hull.vertices), max_vertices))
     return np.asarray(hull.vertices, float), np.asarray(hull.faces, np.int32)
+
+
+FACE_TOLERANCE = 5e-4
+"""Vertices within this (m) of a hull's extreme along an axis belong to its face there."""
+
+
+def _reduced(points: np.ndarray, count: int) -> np.ndarray:
+    """`count` of a hull's vertices: first the corners of its six axis-aligned faces (the outermost face vertices
+    along the face's diagonals), so that a flat base keeps its rim and its height (farthest points alone left a
+    bottle's flat base one vertex, and it fell over), then farthest points from those."""
+    diagonals = np.array([[1.0, 1.0], [1.0, -1.0], [-1.0, 1.0], [-1.0, -1.0]])
+    seeds: list[int] = []
+    for axis in range(3):
+        others = [a for a in range(3) if a != axis]
+        for sign in (1.0, -1.0):
+            height = sign * points[:, axis]
+            face = np.flatnonzero(height >= height.max() - FACE_TOLERANCE)
+            corners = face[np.argmax(points[face][:, others] @ diagonals.T, axis=0)]
+            seeds.extend(int(i) for i in corners)
+    seeds = list(dict.fromkeys(seeds))[:count]
+    return points[_farthest_points(points, count, seeds)]
 
 
 def _thicken(points: np.ndarray) -> np.ndarray:
@@ -119,13 +140,14 @@ def _thicken(points: np.ndarray) -> np.ndarray:
     return np.concatenate([points + offset, points - offset])
 
 
-def _farthest_points(points: np.ndarray, count: int) -> np.ndarray:
-    chosen = [int(np.argmax(np.linalg.norm(points - points.mean(axis=0), axis=1)))]
-    distance = np.linalg.norm(points - points[chosen[0]], axis=1)
+def _farthest_points(points: np.ndarray, count: int, chosen: list[int]) -> list[int]:
+    """Indices of `count` points: `chosen`, then each next one the farthest from those taken."""
+    chosen = list(chosen)
+    distance = np.min([np.linalg.norm(points - points[i], axis=1) for i in chosen], axis=0)
     while len(chosen) < count:
         chosen.append(int(np.argmax(distance)))
         distance = np.minimum(distance, np.linalg.norm(points - points[chosen[-1]], axis=1))
-    return points[chosen]
+    return chosen
 
 
 class HullCache:
