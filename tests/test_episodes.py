@@ -324,6 +324,10 @@ def test_graspable_and_pushable_follow_the_gripper_and_the_physics():
     # finger rings, but not a closed laptop's base, a slab lying on the table.
     assert slot_rules.graspable(str(objects / "scissors" / "scissors_006"), 0.0, "blade")
     assert not slot_rules.graspable(str(objects / "laptop" / "laptop_000"), 0.0, "base frame")
+    # A pad lands first on the widest part of what it closes on: a stapler's body under its wider lid is out of
+    # reach. A bucket's body has grasps (on its rim) only under some keys: its raised handle blocks the hand.
+    assert not slot_rules.graspable(str(objects / "stapler" / "stapler_006"), 0.0, "body")
+    assert not slot_rules.graspable(str(objects / "bucket" / "bucket_005"), 0.0, "base body")
     box = slot_rules.part_views(slot_rules.load_object_geometry(str(objects / "box" / "box_000")), 0.0)
     assert box["right"].pushable == {"left"} and box["left"].pushable == {"right"}
     # Pushing a standing bottle at its neck would tip it over.

@@ -58,6 +58,9 @@ PREGRASP_DISTANCE = 0.08
 LINE_RADIUS = 0.008
 CONTACT_BAND = 0.004
 """Points this close to either end of the closed-on section are where a pad lands."""
+PART_LANDING = 0.002
+"""The target part must reach this close (m) to an end of the closed-on section, where a pad lands first: a
+stapler's body under its wider lid, or a box's body under an overhanging lid, is out of the pads' reach."""
 MIN_ANTIPODAL = 0.9
 """Smallest mean cosine between the landing surfaces' normals and the pads' pushing directions (26 degrees of tilt:
 a squeeze on a more tilted surface pushes the part out of the pads)."""
@@ -278,7 +281,7 @@ def _score(centre, approach, closing, pre_shaped, object_points, object_normals,
 
     pu, pv, pt = local(part_points, centre)
     on_part = part_valid & facing_pads(pu, pt) & (jnp.abs(pv) < opening)
-    near_pad = on_part & (jnp.abs(pv) > 0.5 * width - 0.006)
+    near_pad = on_part & ((pv > v_max - PART_LANDING) | (pv < v_min + PART_LANDING))
     n_between = between.sum()
     target_share = jnp.minimum(on_part.sum() / jnp.maximum(n_between, 1), 1.0)
     checks = jnp.stack([n_between >= 4, width < MAX_GRASP_WIDTH, ~pads.any(), ~hand.any(), above_table,
