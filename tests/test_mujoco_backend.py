@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from partinstruct_mjx.bench.cpu_backend import moving_controls
+from partinstruct_mjx.control.scripted_pick import PickConfig, run_pick
 from partinstruct_mjx.errors import SceneError
 from partinstruct_mjx.sim import panda
 from partinstruct_mjx.sim.mujoco_backend import MujocoBackend
@@ -108,6 +109,30 @@ def test_physics_state_round_trip_replays_exactly(scene):
         backend.set_physics_state(saved)
         second = [backend.step(c).qpos.copy() for c in controls]
     np.testing.assert_array_equal(np.array(first), np.array(second))
+
+
+def test_physics_steps_split_only_while_a_pad_touches(scene):
+    """`contact_split` halves the physics step while a finger pad has a contact, and only then: the arm sweeping in
+    free space moves exactly as without it; a scripted pick of the object ends elsewhere."""
+    from dataclasses import replace
+
+    def run(split, controls, xy=None):
+        with MujocoBackend(replace(scene, config=replace(scene.config, contact_split=split)), 1) as backend:
+            backend.reset(xy)
+            return np.array([backend.step(c).qpos.copy() for c in controls]), backend
+
+    free = moving_controls(1, 30, seed=1)
+    plain, _ = run(1, free)
+    split, backend = run(2, free)
+    np.testing.assert_array_equal(plain, split)
+    assert backend._fine_model.opt.timestep == scene.config.timestep / 2
+    picks = []
+    for split in (1, 2):
+        with MujocoBackend(replace(scene, config=replace(scene.config, contact_split=split)), 1) as backend:
+            picks.append(run_pick(backend, backend.reset(), PickConfig(hold_steps=1)).final_state.qpos.copy())
+    assert np.abs(picks[0] - picks[1]).max() > 1e-6
+    with pytest.raises(SceneError, match="contact_split"):
+        replace(scene.config, contact_split=0)
 
 
 def test_bad_inputs_raise_clear_errors(scene):

@@ -322,6 +322,18 @@ def test_a_push_after_a_touch_on_another_side_goes_round_above_the_object():
     np.testing.assert_allclose(np.asarray(goal), np.asarray(pre_push))
 
 
+def test_the_way_to_a_via_point_goes_over_the_object_first():
+    # A display 25 cm tall between the hand and the via point in front of it: up over it, across, then down.
+    top, via = 0.25, jnp.array([-0.15, 0.0, 0.16])
+    over = top + predicates.FINGERTIP_OFFSET + machine.DETOUR_CLEARANCE
+    far_tcp = jnp.array([0.2, 0.3, 0.35])
+    np.testing.assert_allclose(np.asarray(machine.over_to(via, far_tcp, top)), [-0.15, 0.0, over], atol=1e-6)
+    above = jnp.array([-0.15, 0.005, over])
+    np.testing.assert_allclose(np.asarray(machine.over_to(via, above, top)), np.asarray(via))
+    # A via point already high enough is gone to straight.
+    np.testing.assert_allclose(np.asarray(machine.over_to(via, far_tcp, 0.05)), np.asarray(via))
+
+
 def test_a_fingertip_that_rode_over_goes_back_round_above_the_object():
     # A 1.5 cm flat object pushed along +y from its near face at y = 0 (push point 8 mm above the table at z = 0).
     top, push_point, direction = 0.015, jnp.array([0.0, 0.0, 0.008]), jnp.array([0.0, 1.0, 0.0])
@@ -503,3 +515,27 @@ def test_the_lazy_outlook_picks_the_candidate_checking_every_one_picks():
             if order:
                 expected = positions[order[min(attempt + skip, len(order) - 1)]]
                 np.testing.assert_array_equal(every.target_pos, expected)
+
+
+@pytest.mark.slow
+def test_a_pinch_on_thin_blades_holds_with_the_contact_split():
+    """scissors_004 picked by its top part (both blades, 1.25 cm across their edges) and carried: at 5 ms physics
+    steps the pads' contacts chatter and one pad tunnels through the blades within 20 steps of the lift; with each
+    physics step split in two while the pads touch (`SceneConfig.contact_split`) the carry holds."""
+    from partinstruct_mjx.sim.scene import SceneConfig
+    from partinstruct_mjx.tasks.episodes import Episode
+    from partinstruct_mjx.tasks.skills import SkillStep
+
+    chain = (SkillStep("grasp_obj", "top"), SkillStep("move_gripper", None, "top", grasping=True),
+             SkillStep("move_gripper", None, "right", grasping=True),
+             SkillStep("move_gripper", None, "bottom", grasping=True, put_down=True))
+    episode = Episode("scissors", "scissors_004", 494, 9, "train", chain, "", ("",) * 4,
+                      (0.0, 0.0, 0.29797957542586057, 0.9545722458929046, 0.061922023016750205,
+                       0.12693335949611878, 0.0), 1.0, 4052173101)
+    xml = assets_root() / "objects" / "scissors" / "scissors_004" / "object.xml"
+    outcomes = []
+    for split in (1, 2):
+        with PartInstructEnv(xml, 1, EnvConfig(skill_mode=False, scene=SceneConfig(contact_split=split))) as env:
+            (result,) = run_oracle(env, [episode], jax.random.PRNGKey(0), record=False, tries=1)
+            outcomes.append((result.success, result.failed_skill))
+    assert outcomes == [(False, 1), (True, -1)]

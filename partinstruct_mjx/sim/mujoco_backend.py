@@ -7,6 +7,7 @@ stepping B environments together gives exactly the states of stepping them one b
 
 from __future__ import annotations
 
+import copy
 import os
 from concurrent.futures import ThreadPoolExecutor
 
@@ -41,6 +42,9 @@ class MujocoBackend:
         self._state = empty_scene_state(batch_size, m.nq, m.nv, m.nbody)
         self._ctrl = np.tile(panda.HOME_CTRL, (batch_size, 1))
         self._force6 = [np.zeros(6) for _ in range(batch_size)]
+        self._split = scene.config.contact_split
+        self._fine_model = copy.copy(self.model)
+        self._fine_model.opt.timestep = self.model.opt.timestep / self._split
 
     @property
     def control_dt(self) -> float:
@@ -141,7 +145,14 @@ class MujocoBackend:
         for i in envs:
             data = self.datas[i]
             data.ctrl[:] = self._ctrl[i]
-            mujoco.mj_step(self.model, data, nstep=nstep)
+            if self._split > 1 and self._pads_touch(data):
+                mujoco.mj_step(self._fine_model, data, nstep=self._split * nstep)
+            else:
+                mujoco.mj_step(self.model, data, nstep=nstep)
+
+    def _pads_touch(self, data: mujoco.MjData) -> bool:
+        """A finger geom is in one of the contacts of the last physics step (`SceneConfig.contact_split`)."""
+        return bool((self.scene.geom_finger[data.contact.geom[: data.ncon]] >= 0).any())
 
     def _step_and_extract_chunk(self, envs: np.ndarray) -> None:
         self._step_chunk(envs)
