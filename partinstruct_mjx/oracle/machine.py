@@ -457,6 +457,14 @@ def _push_pose(point, direction, tilt):
     return pos.astype(jnp.float32), candidates.touch_quat(z_axis).astype(jnp.float32)
 
 
+def over_to(via, tcp, object_top):
+    """The goal on the way to a grasp's or touch's via point: first above it, with the TCP FINGERTIP_OFFSET +
+    DETOUR_CLEARANCE over the object's top, then down to it once the TCP is over it. A straight line to a via point on
+    the far side of a tall object swept the hand through it (a display knocked over on the way to its front)."""
+    over = via.at[2].set(jnp.maximum(via[2], object_top + predicates.FINGERTIP_OFFSET + DETOUR_CLEARANCE))
+    return jnp.where(jnp.linalg.norm((tcp - via)[:2]) > ARRIVED, over, via)
+
+
 def over_and_back(goal, cmd_pos, tip, push_point, direction, z_axis, object_top, in_contact):
     """The approach goal of a push (`goal`), or, for a fingertip out of touch that rode over the object (more than
     RIDE_OVER past the push point along `direction`) or is on its way back above it, the next waypoint round above
@@ -540,9 +548,13 @@ def _act_one(o: OracleState, data, geo: PartGeometry, rows, facts, env, follow_e
     focus_part = jnp.maximum(jnp.where(push, o.part[jnp.maximum(index - 1, 0)], o.part[index]), 0)
     focus_points, focus_valid = predicates.part_cloud(data, geo, env_masks, focus_part)
 
+    object_top = jnp.where(whole_valid, whole_points[:, 2], -jnp.inf).max()
+
     # Grasp / touch: 0 wait for a plan, 1 via point, 2 pre-pose, 3 approach, 4 close, 5 judge, 6 back off.
     pre = o.target_pos - candidates.PREGRASP_DISTANCE * o.approach
-    approach_goals = jnp.stack([o.cmd_pos, pre + VIA_HEIGHT * up, pre, o.target_pos, o.target_pos, o.target_pos, pre])
+    via = pre + VIA_HEIGHT * up
+    approach_goals = jnp.stack([o.cmd_pos, over_to(via, tcp, object_top), pre, o.target_pos, o.target_pos,
+                                o.target_pos, pre])
     is_touch = kind == TOUCH
     reach_goal = approach_goals[jnp.clip(stage, 0, 6)]
     reach_speed = jnp.where(stage == 3, jnp.where(is_touch, PUSH_SPEED, APPROACH_SPEED), FREE_SPEED)
@@ -597,7 +609,6 @@ def _act_one(o: OracleState, data, geo: PartGeometry, rows, facts, env, follow_e
     pushed_enough = travelled > UNIT_DISTANCE - PUSH_STOP
     retouch_point = rim_point(focus_points, focus_valid, direction, tip)
     tip_to_tcp = -predicates.FINGERTIP_OFFSET * z_axis
-    object_top = jnp.where(whole_valid, whole_points[:, 2], -jnp.inf).max()
     back_off, to_pre_push, crossing = push_approach(o.anchor_pos, z_axis, push_pos - PUSH_BACK_OFF * direction,
                                                     o.cmd_pos, object_top)
     push_goals = jnp.stack([back_off, to_pre_push, push_point + TOUCH_PRESS * direction + to_tcp,
