@@ -97,14 +97,18 @@ def test_windows_pad_like_diffusion_policy_and_cover_every_step(demo_dir):
 
 def test_network_actions_and_proprio_round_trip(demo_dir):
     demo = next(d for _, d in read_demos(demo_dir / "data" / "bottle.hdf5"))
-    actions = demo["actions"]
-    assert actions[:, 3].min() < -2.5 and actions[:, 3].max() > 2.5, "expected a top-down grasp, roll wrapping at pi"
+    # a top-down grasp's roll wraps at pi: the demo's actions, and the same actions with rolls alternating across pi
+    wrapped = demo["actions"].copy()
+    wrapped[:, 3] = np.where(np.arange(len(wrapped)) % 2, np.pi - 0.05, 0.05 - np.pi)
+    actions = np.concatenate([demo["actions"], wrapped])
     back = np.asarray(features.actions_from_model(features.actions_to_model(actions)))
     np.testing.assert_allclose(back[:, [0, 1, 2, 6]], actions[:, [0, 1, 2, 6]], atol=1e-6)
     np.testing.assert_allclose(np.angle(np.exp(1j * (back[:, 3:6] - actions[:, 3:6]))), 0, atol=1e-4)
+    across = np.asarray(features.actions_to_model(wrapped[:2]))
+    assert np.abs(across[0] - across[1]).max() < 0.2, "rolls 0.1 rad apart across pi must be near for the network"
     obs = demo["obs"]
     proprio = np.asarray(features.proprio_features(obs["tcp_pose"], obs["joint_states"], obs["gripper_state"]))
-    assert proprio.shape == (len(actions), features.PROPRIO_DIM)
+    assert proprio.shape == (len(demo["actions"]), features.PROPRIO_DIM)
     np.testing.assert_allclose(proprio[:, :3], obs["tcp_pose"][:, 4:], atol=1e-6)
     np.testing.assert_allclose(proprio[:, 9:], np.concatenate([obs["joint_states"], obs["gripper_state"]], 1))
 
