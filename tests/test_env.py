@@ -102,7 +102,10 @@ def test_mujoco_and_mjx_backends_agree_on_a_short_episode():
     """Same episode, same actions: the C and MJX backends end within 1 mm (MJX compiles ~40 s on CPU).
 
     With unsaturated servos they agree to 1e-7; while a joint servo saturates at its torque limit MJX's
-    implicit integrator keeps the servo's velocity gain and C MuJoCo drops it, which leaves ~0.5 mm here.
+    implicit integrator keeps the servo's velocity gain and C MuJoCo drops it, which leaves ~0.5 mm here. The mug
+    rests 0.3 mm deeper in C MuJoCo: since converter version 4 its base hull is flat, and the two collision
+    pipelines (C's with its no-slip pass, MJX's without) settle a face on the table to different depths (they agreed
+    to 1e-4 while the base touched the table at one vertex).
     """
     episodes = [_episode(), _episode(1)]
     finals = []
@@ -117,7 +120,7 @@ def test_mujoco_and_mjx_backends_agree_on_a_short_episode():
             finals.append((np.asarray(state.data.tcp_pos), np.asarray(state.data.object_pos),
                            np.asarray(state.metrics["completion"])))
     np.testing.assert_allclose(finals[0][0], finals[1][0], atol=1e-3)
-    np.testing.assert_allclose(finals[0][1], finals[1][1], atol=1e-4)
+    np.testing.assert_allclose(finals[0][1], finals[1][1], atol=5e-4)
     np.testing.assert_array_equal(finals[0][2], finals[1][2])
 
 
