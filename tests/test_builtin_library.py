@@ -4,6 +4,7 @@ import hashlib
 import json
 
 import numpy as np
+import trimesh
 
 from partinstruct_mjx import paths
 from partinstruct_mjx.assets.catalog import load_catalog
@@ -127,3 +128,18 @@ def test_committed_objects_are_what_the_seeded_generator_writes(tmp_path):
         recorded = _meta(entry)["source"]["files"]
         for relative, digest in recorded.items():
             assert hashlib.sha256((folder / relative).read_bytes()).hexdigest() == digest, (entry["id"], relative)
+
+
+def test_pot_tabs_collide_as_they_look():
+    """Each pot's two tabs are non-semantic parts with one hull each, the tab itself. Inside the base body they shared
+    the cup's 8 hulls and CoACD merged each into a wall hull: a wedge the pads squeezed the pot out of."""
+    for entry in (e for e in CATALOG if e["category"] == "kitchen_pot"):
+        tabs = [p for p in _meta(entry)["parts"] if p["name"].startswith("other tab")]
+        assert [(p["hulls"], p["semantic"]) for p in tabs] == [(1, False), (1, False)], entry["id"]
+        assert not {p["name"] for p in tabs} & set(entry["parts"]), "a tab must not become a task's part"
+        for k in range(2):
+            meshes = ROOT / entry["path"] / "meshes"
+            hull = trimesh.load(meshes / f"col_other_tab_{k}_0.stl")
+            tab = trimesh.load(meshes / f"vis_other_tab_{k}_0.obj", force="mesh")
+            assert 0.95 < hull.volume / tab.volume < 1.01, (entry["id"], k)
+

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
+from partinstruct_mjx.assets.partnet import is_semantic_label
 from partinstruct_mjx.assets.procedural.categories import CATEGORIES
 from partinstruct_mjx.assets.procedural.partnet_writer import write_partnet
 from partinstruct_mjx.assets.procedural.spec import ObjectSpec
@@ -38,7 +39,7 @@ def build_object(category: str, index: int, seed: int = 0) -> ObjectSpec:
     entry = CATEGORIES[slug]
     rng = np.random.default_rng([seed, zlib.crc32(slug.encode()), index])
     spec = ObjectSpec(slug, entry.model_cat, object_id(slug, index), seed, entry.build(rng))
-    stray = spec.labels() - set(entry.parts)
+    stray = {label for label in spec.labels() - set(entry.parts) if is_semantic_label(label)}
     if stray:
         raise ValueError(f"{spec.object_id}: labels {sorted(stray)} are not {slug} parts {entry.parts}")
     return spec
