@@ -142,4 +142,3 @@ def test_pot_tabs_collide_as_they_look():
             hull = trimesh.load(meshes / f"col_other_tab_{k}_0.stl")
             tab = trimesh.load(meshes / f"vis_other_tab_{k}_0.obj", force="mesh")
             assert 0.95 < hull.volume / tab.volume < 1.01, (entry["id"], k)
-

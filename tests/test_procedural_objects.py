@@ -12,8 +12,8 @@ import pytest
 import trimesh
 from scipy.spatial.transform import Rotation
 
-from partinstruct_mjx.assets.partnet import is_semantic_label
 from partinstruct_mjx.assets.naming import part_slug
+from partinstruct_mjx.assets.partnet import is_semantic_label
 from partinstruct_mjx.assets.procedural import CATEGORIES, build_object, generate
 
 REPO = Path(__file__).resolve().parents[1]

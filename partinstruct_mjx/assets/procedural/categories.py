@@ -5,7 +5,7 @@ Design frame: metres, Z up, object front towards -X, resting on z=0 (the writer 
 | category    | overall size                                   | graspable parts (cross-section <= 7 cm)          |
 |-------------|------------------------------------------------|--------------------------------------------------|
 | scissors    | length 14-21 cm, blades 2-4 mm thick           | blade, handle, screw                             |
-| kitchen pot | diameter 14-19 cm, height 7-12 cm, + ear loops | lid (knob 3-4 cm), base body (wall, ears)        |
+| kitchen pot | diameter 14-19 cm, height 7-12 cm, + 2 tabs    | lid (knob 3-4 cm), base body (wall); tabs apart  |
 | laptop      | width 22-30 cm, depth 14-22 cm                 | screen frame (5-9 mm lid), base frame (1.2-2 cm) |
 | eyeglasses  | width 12-15 cm, temples 12-14.5 cm             | leg, base body                                   |
 | bucket      | top diameter 12-19 cm, height 10-18 cm         | handle (wire 4.4-7 mm), base body (wall, rim)    |
@@ -144,7 +144,7 @@ def kitchen_pot(rng: Rng) -> tuple[Link, ...]:
 
     Each tab is a non-semantic part of its own ('other' leaves, spec 3.2), so the converter gives it a hull of its
     own: inside the base body the tabs shared the cup's 8 hulls, and CoACD merged each into a wall hull, a wedge the
-    pads squeezed the pot out of. Loop ears were one solid hull each however they were split (docs/oracle.md).
+    pads squeezed the pot out of. Loop ears were one solid hull each (docs/oracle.md).
     """
     height, radius = _u(rng, 0.07, 0.12), _u(rng, 0.07, 0.09)
     flare, wall, floor = _u(rng, 0.0, 0.005), _u(rng, 0.0025, 0.004), _u(rng, 0.004, 0.006)
@@ -158,7 +158,7 @@ def kitchen_pot(rng: Rng) -> tuple[Link, ...]:
     z_top, width, reach = height - _u(rng, 0.015, 0.025), _u(rng, 0.035, 0.045), _u(rng, 0.03, 0.04)
     thick, sunk = _u(rng, 0.008, 0.012), 2 * wall
     metal = colour(rng, "metal")
-    ears = [_part(f"other tab {k}", metal, moved(slab(width, reach + sunk, thick, 0.008),
+    tabs = [_part(f"other tab {k}", metal, moved(slab(width, reach + sunk, thick, 0.008),
                                                  (0.0, side * (outer(z_top) + (reach - sunk) / 2), z_top - thick)))
             for k, side in enumerate((1.0, -1.0))]
     r_lid, rim, rise = outer(height) + _u(rng, 0.002, 0.004), _u(rng, 0.003, 0.005), _u(rng, 0.008, 0.02)
@@ -169,7 +169,7 @@ def kitchen_pot(rng: Rng) -> tuple[Link, ...]:
     lid_colour = colour(rng, "glass") if rng.random() < 0.4 else colour(rng, "metal")
     lid = Part("lid", (Piece(lid_shell, lid_colour), Piece(lid_knob, colour(rng, "rubber"))))
     slider = Joint(0, "prismatic", (0.0, 0.0, height), (0.0, 0.0, 1.0), 0.0, _u(rng, 0.06, 0.1))
-    return Link("base body", (_part("base body", metal, body), *ears)), Link("lid", (lid,), slider)
+    return Link("base body", (_part("base body", metal, body), *tabs)), Link("lid", (lid,), slider)
 
 
 def bucket(rng: Rng) -> tuple[Link, ...]:
