@@ -88,7 +88,10 @@ def main(argv: list[str] | None = None) -> int:
     bench.add_argument("--threads", type=int, default=None, help="worker threads/processes (default: all cores)")
     bench.add_argument("--oracle-tries", type=int, nargs="+", default=None, metavar="N",
                        help="demos suite: the oracle's tries per grasp or touch to measure, side by side (default: "
-                            "the default of `partinstruct demos`, 4)")
+                            "the default of `partinstruct demos`, 6)")
+    bench.add_argument("--workers", type=int, nargs="+", default=None, metavar="N",
+                       help="demos suite: objects simulated at once (threads) to measure, side by side (default: "
+                            "the default of `partinstruct demos`, 2 on the mujoco backend)")
     bench.add_argument("--output", type=Path, default=DEFAULT_BENCH_OUTPUT,
                        help=f"markdown file to update (default {DEFAULT_BENCH_OUTPUT}); '-' prints only")
     bench.set_defaults(func=_bench)
@@ -275,6 +278,7 @@ def _bench_demos(args, on_table) -> str:
     import jax
 
     from partinstruct_mjx.bench import demos
+    from partinstruct_mjx.data.synthesis import default_workers
     from partinstruct_mjx.jax_setup import enable_compilation_cache
     from partinstruct_mjx.oracle.backtrack import SEGMENT_TRIES
 
@@ -282,10 +286,12 @@ def _bench_demos(args, on_table) -> str:
     episodes = demos.bench_episodes(args.episodes or 64)
     device = f"{jax.default_backend()} ({jax.devices()[0].device_kind})"
     results = []
-    for batch, tries in itertools.product(args.batch_sizes or [16], args.oracle_tries or [SEGMENT_TRIES]):
-        result = demos.measure(episodes, batch, args.repeats, args.threads, backend=args.backend, oracle_tries=tries)
+    for batch, tries, workers in itertools.product(args.batch_sizes or [16], args.oracle_tries or [SEGMENT_TRIES],
+                                                   args.workers or [default_workers(args.backend)]):
+        result = demos.measure(episodes, batch, args.repeats, args.threads, backend=args.backend, oracle_tries=tries,
+                               workers=workers)
         results.append(result)
-        print(f"batch {batch:>3}, oracle tries {tries}: {result.demos_per_hour:>9,.0f} demos/hour, "
+        print(f"batch {batch:>3}, oracle tries {tries}, workers {workers}: {result.demos_per_hour:>9,.0f} demos/hour, "
               f"{result.episodes_per_s:.2f} episodes/s, "
               f"{result.env_steps_per_s:,.0f} env steps/s, oracle success {result.successes}/{result.episodes}, "
               f"compile {result.compile_s:.1f} s")

@@ -92,6 +92,38 @@ def test_rerun_resumes_and_more_episodes_adds_only_new_ones(metadata, run_dir, c
     assert json.loads((run_dir / "summary.json").read_text())["episodes"] == 4
 
 
+def test_ctrl_c_while_the_next_batch_runs_keeps_the_batch_being_written(metadata, tmp_path, monkeypatch, capsys):
+    """Clouds and writing run beside the next batch's simulation: Ctrl-C there waits for the batch being written,
+    and the same command resumes with only the rest."""
+    import time
+
+    from partinstruct_mjx.oracle import rollout
+
+    real_run, real_commit = rollout.run_oracle, synthesis._ObjectWorker.commit
+
+    def interrupted_after_two(*args, **kwargs):
+        for count, episode in enumerate(real_run(*args, **kwargs), 1):
+            yield episode
+            if count == 2:
+                raise KeyboardInterrupt
+
+    def slow_commit(self, batch, writer):
+        time.sleep(1.0)  # still writing when Ctrl-C comes
+        return real_commit(self, batch, writer)
+
+    monkeypatch.setattr(rollout, "run_oracle", interrupted_after_two)
+    monkeypatch.setattr(synthesis._ObjectWorker, "commit", slow_commit)
+    assert demos(metadata, tmp_path, 4) == 130
+    first = json.loads((tmp_path / "progress.json").read_text())["episodes"]
+    assert len(first) == 2 and len(list(tmp_path.glob("episodes/*.json"))) == 2
+    monkeypatch.undo()
+    capsys.readouterr()
+    assert demos(metadata, tmp_path, 4) == 0
+    assert "2 episodes run now" in capsys.readouterr().out
+    now = json.loads((tmp_path / "progress.json").read_text())["episodes"]
+    assert len(now) == 4 and {k: now[k] for k in first} == first
+
+
 def test_same_arguments_give_the_same_demos(metadata, run_dir, tmp_path):
     assert demos(metadata, tmp_path, 2) == 0
     first = {json.loads(p.read_text())["ep_id"]: json.loads(p.read_text()) for p in tmp_path.glob("episodes/*")}
@@ -105,6 +137,28 @@ def test_same_arguments_give_the_same_demos(metadata, run_dir, tmp_path):
             b = stored[a["attrs"]["ep_id"]]
             np.testing.assert_array_equal(a["actions"], b["actions"])
             np.testing.assert_array_equal(a["obs"]["agentview_part_pcd"], b["obs"]["agentview_part_pcd"])
+
+
+def test_demos_do_not_depend_on_the_workers(tmp_path):
+    """Two objects simulated at once, in two threads, give the demos they give one after the other."""
+    root = assets_root()
+    episodes = generate_episodes([e for e in load_catalog(root) if e["category"] == "bottle"], root, seed=0,
+                                 per_type=12, splits=("train",))
+    touches = [e for e in episodes if e.task_type == 2]
+    objects = sorted({e.obj_id for e in touches})[:2]
+    chosen = [e for obj_id in objects for e in [e for e in touches if e.obj_id == obj_id][:2]]
+    assert len(chosen) == 4
+    runs = {}
+    for workers in (1, 2):
+        summary = synthesis.synthesize(chosen, tmp_path / str(workers), batch_size=2, progress=False, oracle_tries=1,
+                                       workers=workers)
+        assert summary["run"]["workers"] == workers
+        runs[workers] = {p.name: json.loads(p.read_text()) for p in (tmp_path / str(workers)).glob("episodes/*")}
+        if (tmp_path / str(workers) / "data" / "bottle.hdf5").exists():
+            runs[workers]["actions"] = {d["attrs"]["ep_id"]: d["actions"].tolist()
+                                        for _, d in read_demos(tmp_path / str(workers) / "data" / "bottle.hdf5")}
+    assert runs[1].get("actions"), "no demo to compare"
+    assert runs[1] == runs[2]
 
 
 def test_other_settings_are_refused_for_an_existing_directory(metadata, run_dir, capsys):
@@ -160,7 +214,8 @@ def test_generated_selection_is_remembered_in_the_run_directory(tmp_path, monkey
 @pytest.mark.parametrize("args, message", [(["--split", "test9"], "unknown split"),
                                            (["--types", "12"], "not in split train"),
                                            (["--categories", "teapot"], "unknown category"),
-                                           (["--oracle-tries", "0"], "--oracle-tries must be >= 1")])
+                                           (["--oracle-tries", "0"], "--oracle-tries must be >= 1"),
+                                           (["--workers", "0"], "--workers must be >= 1")])
 def test_bad_input_exits_2(tmp_path, capsys, args, message):
     assert main(["demos", "--out", str(tmp_path / "out"), *args]) == 2
     assert message in capsys.readouterr().err

@@ -57,6 +57,8 @@ class DemosResult:
     backend: str = "mujoco"
     oracle_tries: int | None = None
     """Tries per grasp or touch segment (oracle/backtrack.py)."""
+    workers: int = 1
+    """Objects simulated at once (synthesize's threads)."""
 
     def _median(self, value) -> float:
         return float(np.median([value(run) for run in self.warm]))
@@ -76,7 +78,8 @@ class DemosResult:
 
     @property
     def env_steps_per_s(self) -> float:
-        """Steps of the episodes themselves (each up to its end) per second of simulation + oracle."""
+        """Steps of the episodes themselves (each up to its end) per second of simulation + oracle (seconds summed
+        over the workers' threads)."""
         return self._median(lambda r: sum(b["steps"] for b in r["timing"]["batches"]) / r["timing"]["rollout_s"])
 
     @property
@@ -104,9 +107,10 @@ class DemosResult:
 
 
 def measure(episodes: list[Episode], batch_size: int, repeats: int, threads: int | None = None,
-            sampler: str = "stride", backend: str = "mujoco", oracle_tries: int | None = None) -> DemosResult:
-    """One cold and `repeats` warm synthesis runs of `episodes` into temporary directories (`oracle_tries`: None
-    is `partinstruct demos`' default)."""
+            sampler: str = "stride", backend: str = "mujoco", oracle_tries: int | None = None,
+            workers: int | None = None) -> DemosResult:
+    """One cold and `repeats` warm synthesis runs of `episodes` into temporary directories (`oracle_tries`,
+    `workers`: None is `partinstruct demos`' default)."""
     import jax
 
     from partinstruct_mjx.data.synthesis import synthesize
@@ -117,11 +121,12 @@ def measure(episodes: list[Episode], batch_size: int, repeats: int, threads: int
         jax.clear_caches()
         for index in range(1 + repeats):
             summary = synthesize(episodes, Path(tmp) / f"run{index}", batch_size=batch_size, sampler=sampler,
-                                 backend=backend, progress=False, num_threads=threads, oracle_tries=oracle_tries)
+                                 backend=backend, progress=False, num_threads=threads, oracle_tries=oracle_tries,
+                                 workers=workers)
             runs.append(summary["run"])
     return DemosResult(batch_size, len(episodes), len({(e.obj_class, e.obj_id) for e in episodes}), runs[0], runs[1:],
                        runs[0]["successes"], threads or os.cpu_count() or 1, backend,
-                       SEGMENT_TRIES if oracle_tries is None else oracle_tries)
+                       SEGMENT_TRIES if oracle_tries is None else oracle_tries, runs[0]["workers"])
 
 
 def _backend(result: DemosResult) -> str:
@@ -137,7 +142,8 @@ def markdown(results: list[DemosResult], episodes: list[Episode], device: str, c
         shares = r.shares()
         low, high = r.demos_per_hour_range
         rows.append(
-            f"| {r.batch_size} | {r.oracle_tries} | {r.episodes} | {r.successes} ({r.successes / r.episodes:.0%}) | "
+            f"| {r.batch_size} | {r.oracle_tries} | {r.workers} | {r.episodes} | "
+            f"{r.successes} ({r.successes / r.episodes:.0%}) | "
             f"{r.demos_per_hour:,.0f} | {low:,.0f} - {high:,.0f} | {r.episodes_per_s:.2f} | {r.env_steps_per_s:,.0f} | "
             f"{r.scene_steps_per_s:,.0f} | {r.clouds_per_s:,.0f} | {r.wall_s:.1f} | {shares['rollout']:.0%} / "
             f"{shares['render']:.0%} / {shares['write']:.0%} / {shares['env']:.0%} | {r.compile_s:.1f} | "
@@ -151,12 +157,15 @@ def markdown(results: list[DemosResult], episodes: list[Episode], device: str, c
         f"their array shapes). Rates are "
         f"medians of {repeats} warm run(s) (one by default: a run takes minutes); 'compile' is the cold run's wall "
         f"time (in-process JAX caches cleared) minus the warm median, and the last column is the cold run's rate.\n\n"
-        "| batch | oracle tries | episodes | demos (oracle success) | demos/hour | range | episodes/s | env steps/s | "
-        "scene steps/s | clouds/s | wall s | simulation+oracle / clouds / writing / envs | compile s | "
+        "| batch | oracle tries | workers | episodes | demos (oracle success) | demos/hour | range | episodes/s | "
+        "env steps/s | scene steps/s | clouds/s | wall s | simulation+oracle / clouds / writing / envs | compile s | "
         "cold demos/hour |\n"
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n" + "\n".join(rows) + "\n\n"
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n" + "\n".join(rows) + "\n\n"
+        "'workers' are the objects simulated at once, each in a thread with its own env and its share of the "
+        "physics threads (`partinstruct demos --workers`); clouds and writing run in one more thread beside them, "
+        "so the phases' shares of the wall time add up to more than 100 %. "
         "env steps/s counts each episode's own steps (those of its final demo or failure) per second of "
-        "simulation+oracle; 'oracle tries' are its tries per grasp or touch (1: no backtracking; "
-        "`partinstruct demos --oracle-tries`); scene steps/s counts every step a scene took for an episode, the "
+        "simulation+oracle (a worker's seconds: the seconds are summed over the workers); 'oracle tries' are its "
+        "tries per grasp or touch (1: no backtracking; `partinstruct demos --oracle-tries`); scene steps/s counts every step a scene took for an episode, the "
         "tries that the oracle's backtracking undid included (scenes are streamed: one whose episode ended takes "
         "the next; at the end of an object's episodes the idle scenes are not counted).\n")

@@ -80,7 +80,12 @@ def add_demos_parser(subparsers) -> argparse.ArgumentParser:
                         help="point-cloud sampling: stride (default, fast) or fps (farthest-point, the original's)")
     parser.add_argument("--backend", choices=["mujoco", "mjx"], default="mujoco",
                         help="physics: mujoco (C MuJoCo on CPU threads, default) or mjx")
-    parser.add_argument("--threads", type=int, default=None, metavar="N", help="physics threads (default: all cores)")
+    parser.add_argument("--threads", type=int, default=None, metavar="N",
+                        help="physics threads, shared among the workers (default: all cores)")
+    parser.add_argument("--workers", type=int, default=None, metavar="N",
+                        help="objects simulated at once, each in a thread with its own env: while one's physics runs "
+                             "the other's oracle does (default: 2 on the mujoco backend, 1 on mjx); the demos do "
+                             "not depend on it")
     parser.add_argument("--oracle-tries", type=int, default=None, metavar="N",
                         help="tries per grasp or touch: a failed one and what follows it is tried again from the "
                              "state before it with other random draws (default 6; 1: no backtracking)")
@@ -119,6 +124,8 @@ def run_demos(args: argparse.Namespace) -> int:
 
     if args.oracle_tries is not None and args.oracle_tries < 1:
         raise DataError(f"--oracle-tries must be >= 1, got {args.oracle_tries}")
+    if args.workers is not None and args.workers < 1:
+        raise DataError(f"--workers must be >= 1, got {args.workers}")
     # before the selection is stored
     check_env_args(args.out, env_args(args.backend, args.sampler, args.seed, args.oracle_tries))
     if args.metadata is not None:
@@ -131,7 +138,8 @@ def run_demos(args: argparse.Namespace) -> int:
     try:
         summary = synthesize(episodes, args.out, batch_size=args.batch_size, seed=args.seed, sampler=args.sampler,
                              backend=args.backend, progress=not args.quiet, assets=args.assets,
-                             num_threads=args.threads, render_chunk=args.render_chunk, oracle_tries=args.oracle_tries)
+                             num_threads=args.threads, render_chunk=args.render_chunk, oracle_tries=args.oracle_tries,
+                             workers=args.workers)
     except KeyboardInterrupt:
         print(f"\ninterrupted: committed batches are finalized in {args.out}; run the same command again to resume",
               file=sys.stderr)
@@ -147,8 +155,9 @@ def report(summary: dict, out_dir: Path) -> str:
     lines = [f"{out_dir}: {run['processed']} episodes run now ({run['successes']} demos), {run['already_done']} were "
              f"already done; the directory holds {summary['successes']} demos of {summary['episodes']} episodes"]
     if run["processed"]:
-        lines.append(f"time {timing['wall_s']:.1f} s: simulation+oracle {timing['rollout_s']:.1f} s, point clouds "
-                     f"{timing['render_s']:.1f} s, writing {timing['write_s']:.1f} s, envs {timing['env_s']:.1f} s; "
+        lines.append(f"time {timing['wall_s']:.1f} s with {run['workers']} worker(s); summed over the threads: "
+                     f"simulation+oracle {timing['rollout_s']:.1f} s, point clouds {timing['render_s']:.1f} s, "
+                     f"writing {timing['write_s']:.1f} s, envs {timing['env_s']:.1f} s; "
                      f"{run['successes'] / timing['wall_s'] * 3600:,.0f} demos/hour including compilation")
     lines.append(f"{'type':>4}  {'episodes':>8}  {'demos':>5}  {'success':>7}  failing skills")
     for type_id, entry in summary["per_task_type"].items():

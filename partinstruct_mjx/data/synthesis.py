@@ -20,8 +20,11 @@ import hashlib
 import json
 import math
 import os
+import queue
+import threading
 import time
 from collections import Counter
+from concurrent.futures import FIRST_EXCEPTION, ThreadPoolExecutor, wait
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
@@ -63,7 +66,8 @@ def env_args(backend: str = "mujoco", sampler: str = "stride", seed: int = 0, or
 
 @dataclass
 class Timing:
-    """Wall seconds per phase, accumulated over a run, and one record per batch (the first holds the compiles)."""
+    """Seconds per phase, accumulated over a run, and one record per batch (the first holds the compiles). Clouds and
+    writing run in a thread beside the simulation of the next batch, so the phases may add up to more than wall_s."""
 
     env_s: float = 0.0
     """Building envs (scene compile, part geometry), one per object."""
@@ -83,13 +87,15 @@ class Timing:
 def synthesize(episodes: list[Episode], out_dir: str | os.PathLike, batch_size: int = 16, seed: int = 0,
                sampler: str = "stride", backend: str = "mujoco", progress: bool = True,
                assets: str | os.PathLike | None = None, num_threads: int | None = None,
-               render_chunk: int = RENDER_CHUNK, oracle_tries: int | None = None) -> dict:
+               render_chunk: int = RENDER_CHUNK, oracle_tries: int | None = None, workers: int | None = None) -> dict:
     """Run the oracle on `episodes` (skipping those already committed in `out_dir`) and store the successful demos.
 
     Returns the run directory's summary (see DemoWriter.finalize) plus 'run': this call's counts and its Timing.
     On KeyboardInterrupt the committed batches are finalized before the interrupt is re-raised. A demo's
     initial_state is the MuJoCo physics state after reset; the mjx backend has none, so there it is the first
-    step's joint_states, gripper_state and object_pose. `oracle_tries`: see `env_args`.
+    step's joint_states, gripper_state and object_pose. `oracle_tries`: see `env_args`. `workers`: objects
+    simulated at once, each in its own thread and env with `num_threads` (default: the cores) // workers physics
+    threads (None: `default_workers`); a run's demos do not depend on it.
     """
     from tqdm import tqdm
 
@@ -101,6 +107,8 @@ def synthesize(episodes: list[Episode], out_dir: str | os.PathLike, batch_size: 
         raise DataError(f"unknown point-cloud sampler '{sampler}'; expected one of {', '.join(SAMPLERS)}")
     if oracle_tries is not None and oracle_tries < 1:
         raise DataError(f"oracle_tries must be >= 1, got {oracle_tries}")
+    if workers is not None and workers < 1:
+        raise DataError(f"workers must be >= 1, got {workers}")
     counts = Counter(e.ep_id for e in episodes)
     repeated = sorted(ep_id for ep_id, n in counts.items() if n > 1)
     if repeated:
@@ -115,39 +123,82 @@ def synthesize(episodes: list[Episode], out_dir: str | os.PathLike, batch_size: 
 
     timing = Timing()
     start = time.perf_counter()
-    processed = successes = 0
+    counts = Counter()
     bar = tqdm(total=len(todo), desc="demos", unit="episode", disable=not progress or not todo)
-    try:
-        for key, mine in groups.items():
-            worker = _ObjectWorker(objects[key], _bucket(len(mine), batch_size), backend, num_threads, timing,
-                                   args["synthesis"]["oracle_tries"])
+    lock = threading.Lock()
+    stop = threading.Event()
+    work = queue.SimpleQueue()
+    for group in groups.items():
+        work.put(group)
+    workers = max(1, min(workers or default_workers(backend), len(groups)))
+    threads_each = max(1, (num_threads or os.cpu_count() or 1) // workers)
+
+    def counted(future) -> None:
+        """Wait for a committed batch and count it."""
+        record = future.result()
+        with lock:
+            timing.batches.append(record)
+            for phase in ("env_s", "rollout_s", "render_s", "write_s"):
+                setattr(timing, phase, getattr(timing, phase) + record[phase])
+            counts.update(processed=record["episodes"], successes=record["successes"])
+            elapsed = time.perf_counter() - start
+            bar.set_postfix(demos_per_s=f"{counts['successes'] / elapsed:.2f}",
+                            success=f"{counts['successes'] / counts['processed']:.0%}", refresh=False)
+            bar.update(record["episodes"])
+
+    def simulate() -> None:
+        """Take objects off the queue until it is empty (or the run stops); commit each finished batch."""
+        while not stop.is_set():
             try:
-                for demos, failures, record in worker.run(mine, jax.random.PRNGKey(seed), sampler, render_chunk):
-                    tick = time.perf_counter()
-                    writer.add(demos, failures)
-                    record["write_s"] = time.perf_counter() - tick
-                    timing.write_s += record["write_s"]
-                    timing.batches.append(record)
-                    processed += record["episodes"]
-                    successes += len(demos)
-                    elapsed = time.perf_counter() - start
-                    bar.set_postfix(demos_per_s=f"{successes / elapsed:.2f}", success=f"{successes / processed:.0%}",
-                                    refresh=False)
-                    bar.update(record["episodes"])
+                key, mine = work.get_nowait()
+            except queue.Empty:
+                return
+            with _BUILD_LOCK:
+                worker = _ObjectWorker(objects[key], _bucket(len(mine), batch_size), backend, threads_each,
+                                       args["synthesis"]["oracle_tries"])
+            pending = None
+            try:
+                for batch in worker.run(mine, jax.random.PRNGKey(seed), sampler, render_chunk, stop):
+                    if pending is not None:
+                        counted(pending)
+                    pending = committer.submit(worker.commit, batch, writer)
             finally:
                 worker.close()
-    except KeyboardInterrupt:
-        bar.close()
-        writer.finalize()
-        raise
+                if pending is not None:
+                    counted(pending)
+
+    # `workers` threads simulate objects at once (one's physics runs while another's oracle and IK do: JAX and
+    # MuJoCo release the GIL); one thread renders and writes finished batches beside them.
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="partinstruct-demos-commit") as committer:
+        with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="partinstruct-demos-sim") as simulators:
+            runs = [simulators.submit(simulate) for _ in range(workers)]
+            try:
+                wait(runs, return_when=FIRST_EXCEPTION)
+                for run in runs:
+                    if run.done() and run.exception() is not None:
+                        raise run.exception()
+            except BaseException:
+                stop.set()
+                wait(runs)
+                bar.close()
+                committer.shutdown(wait=True)
+                writer.finalize()
+                raise
     bar.close()
     tick = time.perf_counter()
     summary = writer.finalize()
     timing.write_s += time.perf_counter() - tick
     timing.wall_s = time.perf_counter() - start
-    summary["run"] = {"requested": len(episodes), "already_done": len(episodes) - len(todo), "processed": processed,
-                      "successes": successes, "batch_size": batch_size, "timing": timing.as_dict()}
+    summary["run"] = {"requested": len(episodes), "already_done": len(episodes) - len(todo),
+                      "processed": counts["processed"], "successes": counts["successes"], "batch_size": batch_size,
+                      "workers": workers, "timing": timing.as_dict()}
     return summary
+
+
+def default_workers(backend: str) -> int:
+    """Objects simulated at once by default: 2 on the mujoco backend with 2 or more cores (one thread's physics runs
+    while the other's JAX oracle and IK do), 1 on the mjx backend (one device)."""
+    return 1 if backend == "mjx" else min(2, os.cpu_count() or 1)
 
 
 def _bucket(count: int, batch_size: int) -> int:
@@ -192,70 +243,97 @@ def object_paths(episodes: list[Episode], root: Path) -> dict[tuple[str, str], P
     return paths
 
 
+@dataclass(frozen=True)
+class _Finished:
+    """Episodes the oracle finished (OracleEpisode records), waiting to be rendered and written."""
+
+    runs: list
+    episodes: list[Episode]
+    """The object's episodes (`runs[i].index` indexes them)."""
+    cloud_key: jax.Array
+    sampler: str
+    chunk: int
+    env_s: float
+    rollout_s: float
+
+
+_BUILD_LOCK = threading.Lock()
+"""Envs are built one at a time (MuJoCo's XML compiler is not known to be thread-safe)."""
+
+
 class _ObjectWorker:
     """One env (and point-cloud surface) of one object and batch size, reused for all its batches."""
 
-    def __init__(self, object_xml: Path, batch_size: int, backend: str, num_threads: int | None, timing: Timing,
-                 oracle_tries: int):
+    def __init__(self, object_xml: Path, batch_size: int, backend: str, num_threads: int | None, oracle_tries: int):
         from partinstruct_mjx.env import EnvConfig, PartInstructEnv
         from partinstruct_mjx.obs import point_renderer
         from partinstruct_mjx.obs.cameras import AGENTVIEW, scene_camera
 
         tick = time.perf_counter()
         self.batch_size = batch_size
-        self.timing = timing
         self.oracle_tries = oracle_tries
         self.env = PartInstructEnv(object_xml, batch_size,
                                    EnvConfig(backend=backend, skill_mode=False, num_threads=num_threads))
         self.surface = point_renderer.surface_points(self.env.scene, self.env.geometry)
         self.camera = scene_camera(self.env.scene, AGENTVIEW)
         self.env_s = time.perf_counter() - tick
-        timing.env_s += self.env_s
+        """Building the env, reported with the first batch."""
 
     def close(self) -> None:
         self.env.close()
 
-    def run(self, episodes: list[Episode], key: jax.Array, sampler: str, chunk: int):
-        """Stream one object's episodes through the env (a scene whose episode ended takes the next); yield the
-        demos, failures and timings of every `batch_size` finished episodes (the last chunk may be shorter)."""
-        from partinstruct_mjx.data.demos import Demo
+    def run(self, episodes: list[Episode], key: jax.Array, sampler: str, chunk: int, stop: threading.Event):
+        """Stream one object's episodes through the env (a scene whose episode ended takes the next); yield every
+        `batch_size` finished episodes (the last chunk may be shorter) as a `_Finished` for `commit`. Returns early
+        once `stop` is set."""
         from partinstruct_mjx.oracle.rollout import run_oracle
 
         rollout_key, cloud_key = jax.random.split(key)
         finished, ended = [], 0
         tick = time.perf_counter()
         for episode in run_oracle(self.env, episodes, rollout_key, record=True, tries=self.oracle_tries):
+            if stop.is_set():
+                return
             finished.append(episode)
             ended += 1
             if len(finished) < self.batch_size and ended < len(episodes):
                 continue
             rollout_s = time.perf_counter() - tick
-            self.timing.rollout_s += rollout_s
-            # A skill the oracle failed ends the episode; only an episode whose oracle never failed is a demo.
-            is_demo = [r.success and r.failed_skill < 0 and r.length > 0 for r in finished]
-            winners = [r for r, demo in zip(finished, is_demo) if demo]
-            tick = time.perf_counter()
-            clouds = self._clouds(winners, [episodes[r.index].ep_id for r in winners], cloud_key, sampler, chunk)
-            render_s = time.perf_counter() - tick
-            self.timing.render_s += render_s
-            demos = []
-            for r, cloud in zip(winners, clouds):
-                obs = {"agentview_pcd": cloud[..., :3], "agentview_part_pcd": cloud}
-                obs |= {name: r.obs[name] for name in ("tcp_pose", "joint_states", "gripper_state", "object_pose")}
-                state = r.initial_state if r.initial_state is not None else np.concatenate(
-                    [r.obs[name][0] for name in ("joint_states", "gripper_state", "object_pose")])
-                demos.append(Demo(episodes[r.index], r.actions, obs, r.skill_index, state))
-            failures = [(episodes[r.index], _failure_name(episodes[r.index], r.failed_skill, r.length))
-                        for r, demo in zip(finished, is_demo) if not demo]
-            record = {"object": episodes[0].obj_id, "category": category_slug(episodes[0].obj_class),
-                      "episodes": len(finished), "successes": len(demos),
-                      "steps": int(sum(r.length for r in finished)), "demo_steps": int(sum(r.length for r in winners)),
-                      "scene_steps": int(sum(r.simulated_steps for r in finished)),
-                      "env_s": self.env_s, "rollout_s": rollout_s, "render_s": render_s}
+            yield _Finished(finished, episodes, cloud_key, sampler, chunk, self.env_s, rollout_s)
             self.env_s = 0.0
-            yield demos, failures, record
             finished = []
             tick = time.perf_counter()
+
+    def commit(self, batch: _Finished, writer) -> dict:
+        """Render the clouds of `batch`'s demos, add its demos and failures to `writer`; return the batch's record
+        (counts and timings). Uses only the worker's surface and camera: it may run after `close`."""
+        from partinstruct_mjx.data.demos import Demo
+
+        finished, episodes = batch.runs, batch.episodes
+        # A skill the oracle failed ends the episode; only an episode whose oracle never failed is a demo.
+        is_demo = [r.success and r.failed_skill < 0 and r.length > 0 for r in finished]
+        winners = [r for r, demo in zip(finished, is_demo) if demo]
+        tick = time.perf_counter()
+        clouds = self._clouds(winners, [episodes[r.index].ep_id for r in winners], batch.cloud_key, batch.sampler,
+                              batch.chunk)
+        render_s = time.perf_counter() - tick
+        demos = []
+        for r, cloud in zip(winners, clouds):
+            obs = {"agentview_pcd": cloud[..., :3], "agentview_part_pcd": cloud}
+            obs |= {name: r.obs[name] for name in ("tcp_pose", "joint_states", "gripper_state", "object_pose")}
+            state = r.initial_state if r.initial_state is not None else np.concatenate(
+                [r.obs[name][0] for name in ("joint_states", "gripper_state", "object_pose")])
+            demos.append(Demo(episodes[r.index], r.actions, obs, r.skill_index, state))
+        failures = [(episodes[r.index], _failure_name(episodes[r.index], r.failed_skill, r.length))
+                    for r, demo in zip(finished, is_demo) if not demo]
+        tick = time.perf_counter()
+        writer.add(demos, failures)
+        write_s = time.perf_counter() - tick
+        return {"object": episodes[0].obj_id, "category": category_slug(episodes[0].obj_class),
+                "episodes": len(finished), "successes": len(demos),
+                "steps": int(sum(r.length for r in finished)), "demo_steps": int(sum(r.length for r in winners)),
+                "scene_steps": int(sum(r.simulated_steps for r in finished)),
+                "env_s": batch.env_s, "rollout_s": batch.rollout_s, "render_s": render_s, "write_s": write_s}
 
     def _clouds(self, runs: list, ep_ids: list[int], key: jax.Array, sampler: str,
                 chunk: int) -> list[np.ndarray]:
