@@ -101,13 +101,16 @@ def tcp_quat(approach: jnp.ndarray, closing: jnp.ndarray) -> jnp.ndarray:
 
 
 def grasp_candidates(object_points, object_normals, object_valid, part_points, part_normals, part_valid, key,
-                     num_seeds: int = NUM_SEEDS, top_down_weight=TOP_DOWN_WEIGHT) -> dict[str, jnp.ndarray]:
+                     num_seeds: int = NUM_SEEDS, top_down_weight=TOP_DOWN_WEIGHT,
+                     lever_weight=0.0) -> dict[str, jnp.ndarray]:
     """Scored grasps for one environment: centre (N, 3), approach (N, 3), closing (N, 3), opening (N,) (each
     finger's opening on the approach), score (N,), -inf invalid, and checks (N, 7): something between the pads,
     narrow enough, pads free, hand free, above the table, the part under a pad, antipodal (GRASP_CHECKS).
 
     Antipodal sampling: a pad lands on a seed point of the part and closes along its normal; the approach is each
     of APPROACHES made perpendicular to that normal. Points (M, 3) are world-frame with outward unit normals.
+    lever_weight: score lost per metre between the object's middle and the closing axis through the grasp (the lever
+    of the weight's torque about the pinch, which only the pads' torsional friction holds once the object tilts).
     """
     # Half the seeds cover the part evenly (farthest-point sampling: a small knob on a wide lid gets its own), half
     # are drawn favouring side faces (flat parts lying on the table are pinched across them, from above).
@@ -134,7 +137,7 @@ def grasp_candidates(object_points, object_normals, object_valid, part_points, p
         depth = jnp.clip(0.5 * (first + last), first + MIN_DEPTH, first + MAX_DEPTH)
         centre, opening, score, checks = _score(inner + depth * approach, approach, normal, ~through, object_points,
                                                 object_normals, object_valid, part_points, part_valid, part_centre,
-                                                extent, object_centre, top_down_weight)
+                                                extent, object_centre, top_down_weight, lever_weight)
         return centre, approach, opening, jnp.where(length > MIN_APPROACH_COMPONENT, score, -jnp.inf), checks
 
     per_seed = 2 * APPROACHES.shape[0]
@@ -223,7 +226,7 @@ def _grown_section(v, slab):
 
 
 def _score(centre, approach, closing, pre_shaped, object_points, object_normals, object_valid, part_points,
-           part_valid, part_centre, extent, object_centre, top_down_weight):
+           part_valid, part_centre, extent, object_centre, top_down_weight, lever_weight):
     across = jnp.cross(closing, approach)
 
     def local(points, at):
@@ -289,9 +292,11 @@ def _score(centre, approach, closing, pre_shaped, object_points, object_normals,
     valid = checks.all()
     # Grasps far from the object's middle let it pivot or squeeze out when lifted.
     off_centre = jnp.linalg.norm((centre - object_centre)[:2])
+    to_middle = object_centre - centre
+    lever = jnp.linalg.norm(to_middle - (to_middle @ closing) * closing)
     score = (0.3 * target_share + 2.0 * antipodal + top_down_weight * (-approach[2])
              - 1.0 * jnp.linalg.norm(centre - part_centre) / jnp.maximum(extent, 0.02)
-             - OFF_CENTRE_WEIGHT * off_centre + 0.2 * jnp.minimum(n_between / 20.0, 1.0))
+             - OFF_CENTRE_WEIGHT * off_centre - lever_weight * lever + 0.2 * jnp.minimum(n_between / 20.0, 1.0))
     return centre, opening, jnp.where(valid, score, -jnp.inf), checks
 
 

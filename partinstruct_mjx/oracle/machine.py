@@ -95,6 +95,14 @@ RIM_OVER = 0.003
 """Touching again after a push aims the fingertip this far (m) above the top of the touched part's rear face and this
 far past its rear edge (TOUCHING holds within 1 cm). Pressing the face itself, the pads' edge met it first and
 stopped the fingertip, the middle of the pads' end, 1-1.4 cm away."""
+TURN_START_SPEED = 0.01
+TURN_ACCELERATION = 0.004
+"""A turn's speed starts at this (rad per step) and grows by this per step up to its limit (PLANNED_TURN_SPEED in
+18 steps): turned at full speed from the first step, thin objects (scissors, knives) and heavy ones twisted out of
+the pads within the first 10-15 steps of the turn."""
+AIR_TURN_LEVER_WEIGHT = 20.0
+"""Grasp score lost per metre between the object's middle and the pinch axis in chains that turn the object in the
+air (candidates.grasp_candidates' lever_weight)."""
 LIFT_START_SPEED = 0.0015
 LIFT_ACCELERATION = 0.000125
 """A carry's commanded speed starts at this (m per step) and grows by this per step up to CARRY_SPEED (68 steps;
@@ -287,9 +295,12 @@ def _plan_grasp(o: OracleState, data, geo: PartGeometry, kinematics, q):
     # hand back at the robot).
     later = jnp.arange(progress.MAX_SKILLS) > index
     table_turn = (later & (o.kind == ROTATE) & o.on_table_turn).any()
+    # A turn in the air later tilts the object in the pads: grasp it near the line through its middle.
+    air_turn = (later & (o.kind == ROTATE) & ~o.on_table_turn).any()
     grasps = candidates.grasp_candidates(object_points, object_normals, object_valid, part_points, part_normals,
                                           part_valid, sub, top_down_weight=jnp.where(
-                                              table_turn, TABLE_TURN_TOP_DOWN_WEIGHT, candidates.TOP_DOWN_WEIGHT))
+                                              table_turn, TABLE_TURN_TOP_DOWN_WEIGHT, candidates.TOP_DOWN_WEIGHT),
+                                          lever_weight=jnp.where(air_turn, AIR_TURN_LEVER_WEIGHT, 0.0))
     top_score, top = jax.lax.top_k(grasps["score"], PLAN_CANDIDATES)
     approach, closing = grasps["approach"][top], grasps["closing"][top]
     # Both closing directions of each grasp (the hand turned half a turn about its axis), the one nearer the
@@ -650,12 +661,13 @@ def _act_one(o: OracleState, data, geo: PartGeometry, rows, facts, env, follow_e
     axis = jnp.where(jnp.linalg.norm(axis) < 1e-3, up, axis)
     axis = jnp.where(flat, up * jnp.where(axis[2] >= 0, 1.0, -1.0), axis)
     axis = axis / jnp.linalg.norm(axis)
-    turn = axis_angle_to_quat(axis, jnp.minimum(angle, TURN_SPEED))
+    turn_speed = TURN_START_SPEED + TURN_ACCELERATION * steps
+    turn = axis_angle_to_quat(axis, jnp.minimum(angle, jnp.minimum(TURN_SPEED, turn_speed)))
     quat_t = quat_multiply(turn, o.cmd_quat)
     # 0 wait for the plan, 1 follow the planned turn, 2 closed-loop correction (shortest arc about the TCP).
     radius = jnp.linalg.norm(o.anchor_pos - o.turn_pivot)
-    turn_step = jnp.minimum(PLANNED_TURN_SPEED, CARRY_SPEED / jnp.maximum(radius, 1e-3)) / jnp.maximum(o.turn_angle,
-                                                                                                      1e-3)
+    turn_step = (jnp.minimum(jnp.minimum(PLANNED_TURN_SPEED, turn_speed), CARRY_SPEED / jnp.maximum(radius, 1e-3))
+                 / jnp.maximum(o.turn_angle, 1e-3))
     turn_progress = jnp.where(stage == 1, jnp.minimum(1.0, o.turn_progress + turn_step), o.turn_progress)
     pos_1, quat_1 = rotation.turned_pose(o.turn_pivot, o.turn_axis, o.turn_angle, turn_progress, o.anchor_pos,
                                          o.anchor_quat)
@@ -663,7 +675,9 @@ def _act_one(o: OracleState, data, geo: PartGeometry, rows, facts, env, follow_e
     pos_t = jnp.where(stage == 1, pos_1, o.cmd_pos)
     quat_t = jnp.select([stage == 1, stage == 2], [quat_1, quat_t], o.cmd_quat)
     turn_stage = jnp.where((stage == 1) & (turn_progress >= 1.0) & (jnp.linalg.norm(tcp - pos_1) < ARRIVED), 2, stage)
-    rotate_done = effects & (angle < ROTATE_TOLERANCE) & (stage == 2)
+    # Done once the part faces the goal after the planned turn, even where the arm cannot bring the TCP onto the
+    # plan's end pose (it never arrived there, and the skill ran out of steps).
+    rotate_done = effects & (angle < ROTATE_TOLERANCE) & ((stage == 2) | ((stage == 1) & (turn_progress >= 1.0)))
 
     # Release: open, back off along the TCP's z, then up.
     release_goals = jnp.stack([o.cmd_pos, o.target_pos - RETREAT_BACK * z_axis, o.target_pos + RETREAT_UP * up])
