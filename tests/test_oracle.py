@@ -192,6 +192,29 @@ def test_a_bar_beside_a_wall_is_pinched_with_a_pre_shaped_hand():
     np.testing.assert_allclose(sections, (-0.004, 0.005))
 
 
+def test_grasps_before_an_air_turn_lose_score_by_the_lever_about_the_pinch():
+    # An L: a 16 cm bar along x with a block at one end. The weight's torque about the pinch axis grows with the
+    # distance from the object's middle to that axis; a chain that turns the object in the air ranks by it.
+    bar_points, bar_normals = _box_cloud([-0.08, -0.01, TABLE_HEIGHT], [0.08, 0.01, TABLE_HEIGHT + 0.015])
+    block_points, block_normals = _box_cloud([0.05, 0.01, TABLE_HEIGHT], [0.08, 0.05, TABLE_HEIGHT + 0.03])
+    points = jnp.asarray(np.concatenate([bar_points, block_points]), jnp.float32)
+    normals = jnp.asarray(np.concatenate([bar_normals, block_normals]), jnp.float32)
+    valid = jnp.ones(len(points), bool)
+    part_valid = jnp.arange(len(points)) < len(bar_points)
+    plain, levered = (candidates.grasp_candidates(points, normals, valid, points, normals, part_valid,
+                                                  jax.random.PRNGKey(0), lever_weight=weight) for weight in (0.0, 20.0))
+    good = np.isfinite(np.asarray(plain["score"]))
+    assert good.sum() >= 5 and (good == np.isfinite(np.asarray(levered["score"]))).all()
+    middle = np.asarray(points).mean(0)
+    to_middle = middle - np.asarray(plain["centre"])[good]
+    closing = np.asarray(plain["closing"])[good]
+    lever = np.linalg.norm(to_middle - (to_middle * closing).sum(1, keepdims=True) * closing, axis=1)
+    drop = np.asarray(plain["score"])[good] - np.asarray(levered["score"])[good]
+    np.testing.assert_allclose(drop, 20.0 * lever, atol=1e-4)
+    assert np.ptp(lever) > 0.02  # the grasps differ in their lever, so the ranking can change
+    assert lever[np.argmax(np.asarray(levered["score"])[good])] <= lever[np.argmax(np.asarray(plain["score"])[good])]
+
+
 def test_a_pre_shaped_grasp_approaches_with_its_opening(episodes):
     # dispenser_000, type 1 ('right'): the planner's grasp pinches a thin section, so the fingers open to it, not
     # fully, from the via point until they close.
