@@ -215,6 +215,35 @@ def test_grasps_before_an_air_turn_lose_score_by_the_lever_about_the_pinch():
     assert lever[np.argmax(np.asarray(levered["score"])[good])] <= lever[np.argmax(np.asarray(plain["score"])[good])]
 
 
+@pytest.mark.slow
+def test_an_air_turn_ramps_up(episodes):
+    """Type 8 on bottle_007 (grasp the left, lift, turn the back to the top): the turn's commanded rotation starts at
+    TURN_START_SPEED and grows by TURN_ACCELERATION per step, and the task succeeds."""
+    episode = next(e for e in episodes if e.obj_id == "bottle_007" and e.task_type == 8)
+    turn = [step.name for step in episode.chain].index("rotate_obj")
+    with _env(episode) as env:
+        state = env.reset(jax.random.PRNGKey(0), [episode])
+        policy = OraclePolicy()
+        policy.reset(env, state, jax.random.PRNGKey(0))
+        per_step, last = [], None
+        for _ in range(300):
+            before = np.asarray(policy.state.cmd_quat[0])
+            state = env.step(state, policy.act(env, state))
+            oracle = policy.state
+            if int(oracle.skill[0]) != turn:
+                if last is not None:
+                    break
+                continue
+            last = int(oracle.stage[0])
+            if last == 1:
+                per_step.append(2 * np.arccos(min(1.0, abs(float(before @ np.asarray(oracle.cmd_quat[0]))))))
+    first = np.asarray(per_step[1:6])  # the step that planned the turn leaves the hand where it was
+    limits = machine.TURN_START_SPEED + machine.TURN_ACCELERATION * np.arange(1, 6)
+    assert len(per_step) > 6 and (first <= limits + 1e-3).all(), first
+    assert max(per_step) > first[0] + 2 * machine.TURN_ACCELERATION
+    assert last is not None and bool(state.task.success[0])
+
+
 def test_a_pre_shaped_grasp_approaches_with_its_opening(episodes):
     # dispenser_000, type 1 ('right'): the planner's grasp pinches a thin section, so the fingers open to it, not
     # fully, from the via point until they close.

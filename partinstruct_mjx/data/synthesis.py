@@ -123,7 +123,7 @@ def synthesize(episodes: list[Episode], out_dir: str | os.PathLike, batch_size: 
 
     timing = Timing()
     start = time.perf_counter()
-    counts = Counter()
+    tally = Counter()
     bar = tqdm(total=len(todo), desc="demos", unit="episode", disable=not progress or not todo)
     lock = threading.Lock()
     stop = threading.Event()
@@ -140,10 +140,10 @@ def synthesize(episodes: list[Episode], out_dir: str | os.PathLike, batch_size: 
             timing.batches.append(record)
             for phase in ("env_s", "rollout_s", "render_s", "write_s"):
                 setattr(timing, phase, getattr(timing, phase) + record[phase])
-            counts.update(processed=record["episodes"], successes=record["successes"])
+            tally.update(processed=record["episodes"], successes=record["successes"])
             elapsed = time.perf_counter() - start
-            bar.set_postfix(demos_per_s=f"{counts['successes'] / elapsed:.2f}",
-                            success=f"{counts['successes'] / counts['processed']:.0%}", refresh=False)
+            bar.set_postfix(demos_per_s=f"{tally['successes'] / elapsed:.2f}",
+                            success=f"{tally['successes'] / tally['processed']:.0%}", refresh=False)
             bar.update(record["episodes"])
 
     def simulate() -> None:
@@ -190,7 +190,7 @@ def synthesize(episodes: list[Episode], out_dir: str | os.PathLike, batch_size: 
     timing.write_s += time.perf_counter() - tick
     timing.wall_s = time.perf_counter() - start
     summary["run"] = {"requested": len(episodes), "already_done": len(episodes) - len(todo),
-                      "processed": counts["processed"], "successes": counts["successes"], "batch_size": batch_size,
+                      "processed": tally["processed"], "successes": tally["successes"], "batch_size": batch_size,
                       "workers": workers, "timing": timing.as_dict()}
     return summary
 
@@ -276,8 +276,7 @@ class _ObjectWorker:
                                    EnvConfig(backend=backend, skill_mode=False, num_threads=num_threads))
         self.surface = point_renderer.surface_points(self.env.scene, self.env.geometry)
         self.camera = scene_camera(self.env.scene, AGENTVIEW)
-        self.env_s = time.perf_counter() - tick
-        """Building the env, reported with the first batch."""
+        self.env_s = time.perf_counter() - tick  # building the env, reported with the first batch
 
     def close(self) -> None:
         self.env.close()

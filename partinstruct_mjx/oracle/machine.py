@@ -98,8 +98,9 @@ stopped the fingertip, the middle of the pads' end, 1-1.4 cm away."""
 TURN_START_SPEED = 0.01
 TURN_ACCELERATION = 0.004
 """A turn's speed starts at this (rad per step) and grows by this per step up to its limit (PLANNED_TURN_SPEED in
-18 steps): turned at full speed from the first step, thin objects (scissors, knives) and heavy ones twisted out of
-the pads within the first 10-15 steps of the turn."""
+18 steps), as carries do. Kept with the grasps' lever term and the turn's end (docs/oracle.md: 381 -> 390 of 435
+episodes together, 387 with the lever term alone); a contact trace of a dropped scissors turn found no twist in
+the pads before the drop, so the ramp is not known to fix that cause."""
 AIR_TURN_LEVER_WEIGHT = 20.0
 """Grasp score lost per metre between the object's middle and the pinch axis in chains that turn the object in the
 air (candidates.grasp_candidates' lever_weight)."""
