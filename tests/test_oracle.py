@@ -244,6 +244,31 @@ def test_an_air_turn_ramps_up(episodes):
     assert last is not None and bool(state.task.success[0])
 
 
+@pytest.mark.slow
+def test_a_turn_that_moved_the_object_carries_it_back(episodes):
+    """Type 12 on display_005 (grasp, lift, carry right, turn, put down): the turn swings the display away from where
+    the carry left it, the rotation carries it back (stage 3) to within RECENTRE_DONE, and the task succeeds."""
+    episode = next(e for e in episodes if e.obj_id == "display_005" and e.task_type == 12)
+    turn = [step.name for step in episode.chain].index("rotate_obj")
+    with _env(episode) as env:
+        state = env.reset(jax.random.PRNGKey(0), [episode])
+        policy = OraclePolicy()
+        policy.reset(env, state, jax.random.PRNGKey(0))
+        stages, moved = [], []
+        for _ in range(300):
+            state = env.step(state, policy.act(env, state))
+            oracle = policy.state
+            if int(oracle.skill[0]) == turn:
+                stages.append(int(oracle.stage[0]))
+                moved.append(float(np.linalg.norm(np.asarray(oracle.p0[0]) - np.asarray(state.data.object_pos[0]))))
+            if bool(state.done[0]):
+                break
+    assert 3 in stages
+    assert max(moved[:stages.index(3)]) > machine.RECENTRE_START
+    assert moved[-1] < machine.RECENTRE_DONE
+    assert bool(state.task.success[0])
+
+
 def test_a_pre_shaped_grasp_approaches_with_its_opening(episodes):
     # dispenser_000, type 1 ('right'): the planner's grasp pinches a thin section, so the fingers open to it, not
     # fully, from the via point until they close.

@@ -101,6 +101,14 @@ TURN_ACCELERATION = 0.004
 18 steps), as carries do. Kept with the grasps' lever term and the turn's end (docs/oracle.md: 381 -> 390 of 435
 episodes together, 387 with the lever term alone); a contact trace of a dropped scissors turn found no twist in
 the pads before the drop, so the ramp is not known to fix that cause."""
+RECENTRE_START = 0.03
+RECENTRE_DONE = 0.015
+RECENTRE_STEPS = 40
+RECENTRE_ACCELERATION = 0.001
+"""A turn that leaves the object origin more than RECENTRE_START (m) from where the rotation started (a turn about
+the TCP swings it round the grasp) carries it back, holding the part on its goal, until within RECENTRE_DONE or
+after RECENTRE_STEPS; the carry's speed grows by RECENTRE_ACCELERATION per step up to CARRY_SPEED. The task's AT
+goals (0.05-0.08 m) judge the object where the moves before the turn put it."""
 AIR_TURN_LEVER_WEIGHT = 20.0
 """Grasp score lost per metre between the object's middle and the pinch axis in chains that turn the object in the
 air (candidates.grasp_candidates' lever_weight)."""
@@ -149,7 +157,8 @@ class OracleState:
     turn_angle: jnp.ndarray
     turn_pivot: jnp.ndarray
     turn_raise: jnp.ndarray   # (B,) metres the hand rises during the turn (keeps the object above the table)
-    anchor_pos: jnp.ndarray   # (B, 3) commanded TCP pose when a turn or a push was planned (it starts from there)
+    anchor_pos: jnp.ndarray   # (B, 3) commanded TCP pose when a turn or a push was planned (it starts from there),
+    #                           in a turn's carry back the TCP's goal
     anchor_quat: jnp.ndarray
     turn_progress: jnp.ndarray  # (B,) fraction of the planned turn commanded so far
     key: jnp.ndarray
@@ -665,7 +674,8 @@ def _act_one(o: OracleState, data, geo: PartGeometry, rows, facts, env, follow_e
     turn_speed = TURN_START_SPEED + TURN_ACCELERATION * steps
     turn = axis_angle_to_quat(axis, jnp.minimum(angle, jnp.minimum(TURN_SPEED, turn_speed)))
     quat_t = quat_multiply(turn, o.cmd_quat)
-    # 0 wait for the plan, 1 follow the planned turn, 2 closed-loop correction (shortest arc about the TCP).
+    # 0 wait for the plan, 1 follow the planned turn, 2 closed-loop correction (shortest arc about the TCP),
+    # 3 carry the object back (below).
     radius = jnp.linalg.norm(o.anchor_pos - o.turn_pivot)
     turn_step = (jnp.minimum(jnp.minimum(PLANNED_TURN_SPEED, turn_speed), CARRY_SPEED / jnp.maximum(radius, 1e-3))
                  / jnp.maximum(o.turn_angle, 1e-3))
@@ -673,12 +683,27 @@ def _act_one(o: OracleState, data, geo: PartGeometry, rows, facts, env, follow_e
     pos_1, quat_1 = rotation.turned_pose(o.turn_pivot, o.turn_axis, o.turn_angle, turn_progress, o.anchor_pos,
                                          o.anchor_quat)
     pos_1 = pos_1 + o.turn_raise * jnp.minimum(1.0, 2.0 * turn_progress) * up
-    pos_t = jnp.where(stage == 1, pos_1, o.cmd_pos)
-    quat_t = jnp.select([stage == 1, stage == 2], [quat_1, quat_t], o.cmd_quat)
-    turn_stage = jnp.where((stage == 1) & (turn_progress >= 1.0) & (jnp.linalg.norm(tcp - pos_1) < ARRIVED), 2, stage)
-    # Done once the part faces the goal after the planned turn, even where the arm cannot bring the TCP onto the
-    # plan's end pose (it never arrived there, and the skill ran out of steps).
-    rotate_done = effects & (angle < ROTATE_TOLERANCE) & ((stage == 2) | ((stage == 1) & (turn_progress >= 1.0)))
+    # 3 carry the object back to where the turn started (on the table: sideways only; in the air: clear of it).
+    back = (o.p0 - data.object_pos) * jnp.where(flat, jnp.array([1.0, 1.0, 0.0]), 1.0)
+    lowest = jnp.where(whole_valid, whole_points[:, 2], jnp.inf).min()
+    back = jnp.where(flat, back, back.at[2].set(jnp.maximum(back[2], TABLE_HEIGHT + rotation.TABLE_CLEARANCE - lowest)))
+    recentre_speed = jnp.minimum(CARRY_SPEED, RECENTRE_ACCELERATION * (steps + 1))
+    pos_3, _ = _toward(o.cmd_pos, o.cmd_quat, o.anchor_pos, o.cmd_quat, recentre_speed, TURN_SPEED)
+    pos_t = jnp.select([stage == 1, stage == 3], [pos_1, pos_3], o.cmd_pos)
+    quat_t = jnp.select([stage == 1, stage >= 2], [quat_1, quat_t], o.cmd_quat)
+    # Facing the goal after the planned turn (even where the arm cannot bring the TCP onto the plan's end pose: it
+    # never arrived there, and the skill ran out of steps): done, or first carried back if the turn moved it away.
+    faces = effects & (angle < ROTATE_TOLERANCE) & ((stage == 2) | ((stage == 1) & (turn_progress >= 1.0)))
+    displaced = jnp.linalg.norm(back) > RECENTRE_START
+    still_faces = effects & (angle < ROTATE_TOLERANCE)
+    recentred = (jnp.linalg.norm(back) < RECENTRE_DONE) | (steps >= RECENTRE_STEPS)
+    turn_stage = jnp.select([faces & displaced, (stage == 1) & (turn_progress >= 1.0)
+                             & (jnp.linalg.norm(tcp - pos_1) < ARRIVED), (stage == 3) & recentred & ~still_faces],
+                            [3, 2, 2], stage)
+    rotate_done = (faces & ~displaced) | ((stage == 3) & still_faces & recentred)
+    # The carry back heads for a goal fixed when it starts (the TCP then, moved by the object's offset): a goal
+    # following the measured TCP ran away where the arm could not follow.
+    anchor_pos = jnp.where((kind == ROTATE) & (stage != 3) & (turn_stage == 3), tcp + back, o.anchor_pos)
 
     # Release: open, back off along the TCP's z, then up.
     release_goals = jnp.stack([o.cmd_pos, o.target_pos - RETREAT_BACK * z_axis, o.target_pos + RETREAT_UP * up])
@@ -706,7 +731,8 @@ def _act_one(o: OracleState, data, geo: PartGeometry, rows, facts, env, follow_e
     target_pos = jnp.where((kind == RELEASE) & (stage == 0), o.cmd_pos, o.target_pos)
     attempt = o.attempt + replan
     out_of_attempts = replan & (attempt >= MAX_ATTEMPTS)
-    over_budget = o.skill_steps >= jnp.asarray(SKILL_BUDGET)[kind]
+    # A turn carrying the object back ends by its own step count.
+    over_budget = (o.skill_steps >= jnp.asarray(SKILL_BUDGET)[kind]) & ~((kind == ROTATE) & (stage == 3))
     # Carrying, pushing or turning without the object in hand fails at once (the original aborts such motions).
     needs_hold = ((kind == MOVE) & (o.grasping[index] | (push & (stage == 3) & ~pushed_enough))) | (kind == ROTATE)
     holds = jnp.where(push, in_contact, predicates.pressing(data, geo).any())  # GRASPING of the whole object
@@ -732,4 +758,5 @@ def _act_one(o: OracleState, data, geo: PartGeometry, rows, facts, env, follow_e
         p0=jnp.where(finished, data.object_pos, o.p0),
         cmd_pos=jnp.where(keep, o.cmd_pos, pos), cmd_quat=jnp.where(keep, o.cmd_quat, quat),
         finger=jnp.where(keep, o.finger, finger), grip_width=data.finger_qpos[0].astype(jnp.float32),
-        target_pos=target_pos, turn_progress=jnp.where(finished, 0.0, turn_progress))
+        target_pos=target_pos, anchor_pos=jnp.where(keep, o.anchor_pos, anchor_pos),
+        turn_progress=jnp.where(finished, 0.0, turn_progress))
