@@ -87,11 +87,11 @@ def main(argv: list[str] | None = None) -> int:
                        help="demos and eval suites: physics backend (default mujoco; mjx on a GPU)")
     bench.add_argument("--threads", type=int, default=None, help="worker threads/processes (default: all cores)")
     bench.add_argument("--oracle-tries", type=int, nargs="+", default=None, metavar="N",
-                       help="demos suite: the oracle's tries per grasp or touch to measure, side by side (default: "
-                            "the default of `partinstruct demos`, 6)")
+                       help="demos and eval suites: the oracle's tries per grasp or touch to measure, side by side "
+                            "(default: the default of `partinstruct demos` and `eval`, 6)")
     bench.add_argument("--workers", type=int, nargs="+", default=None, metavar="N",
-                       help="demos suite: objects simulated at once (threads) to measure, side by side (default: "
-                            "the default of `partinstruct demos`, 2 on the mujoco backend)")
+                       help="demos and eval suites: objects simulated at once (threads) to measure, side by side "
+                            "(default: the default of `partinstruct demos` and `eval`, 2 on the mujoco backend)")
     bench.add_argument("--output", type=Path, default=DEFAULT_BENCH_OUTPUT,
                        help=f"markdown file to update (default {DEFAULT_BENCH_OUTPUT}); '-' prints only")
     bench.set_defaults(func=_bench)
@@ -278,9 +278,9 @@ def _bench_demos(args, on_table) -> str:
     import jax
 
     from partinstruct_mjx.bench import demos
-    from partinstruct_mjx.data.synthesis import default_workers
     from partinstruct_mjx.jax_setup import enable_compilation_cache
     from partinstruct_mjx.oracle.backtrack import SEGMENT_TRIES
+    from partinstruct_mjx.workers import default_workers
 
     cache = enable_compilation_cache()
     episodes = demos.bench_episodes(args.episodes or 64)
@@ -307,17 +307,21 @@ def _bench_eval(args, on_table) -> str:
 
     from partinstruct_mjx.bench import evaluation
     from partinstruct_mjx.jax_setup import enable_compilation_cache
+    from partinstruct_mjx.oracle.backtrack import SEGMENT_TRIES
+    from partinstruct_mjx.workers import default_workers
 
     cache = enable_compilation_cache()
     device = f"{jax.default_backend()} ({jax.devices()[0].device_kind})"
     results = []
-    for batch in args.batch_sizes or [16]:
-        config = evaluation.bench_config(args.episodes or 8, batch, args.backend, args.threads)
+    for batch, tries, workers in itertools.product(args.batch_sizes or [16], args.oracle_tries or [SEGMENT_TRIES],
+                                                   args.workers or [default_workers(args.backend)]):
+        config = evaluation.bench_config(args.episodes or 8, batch, args.backend, args.threads, tries, workers)
+        row = f"batch {batch:>3}, oracle tries {tries}, workers {workers}"
         result = evaluation.measure(config, args.repeats, on_run=lambda index, run: print(
-            f"batch {batch:>3}, {'cold' if index == 0 else 'warm'} run: {run.episodes} episodes in {run.wall_s:.1f} s "
+            f"{row}, {'cold' if index == 0 else 'warm'} run: {run.episodes} episodes in {run.wall_s:.1f} s "
             f"({run.episodes / run.wall_s * 60:,.1f} episodes/min), {run.successes} successful", flush=True))
         results.append(result)
-        print(f"batch {batch:>3}: {result.episodes_per_min:,.1f} episodes/min, oracle success "
+        print(f"{row}: {result.episodes_per_min:,.1f} episodes/min, oracle success "
               f"{result.cold.successes}/{result.cold.episodes}, compile {result.compile_s:.1f} s, "
               f"{evaluation.FULL_EVALUATION:,} episodes in {result.full_evaluation_min:,.1f} min")
         table = evaluation.markdown(results, device, f"on ({cache})")

@@ -8,6 +8,7 @@ Success follows the episode's skill chain (skill mode, the evaluation default) o
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -74,14 +75,20 @@ class State:
     info: dict[str, Any]
 
 
+_BUILD_LOCK = threading.Lock()
+"""Envs are built one at a time (worker threads build theirs; MuJoCo's XML compiler is not known to be
+thread-safe)."""
+
+
 class PartInstructEnv:
     """B scenes of one object; the episodes given at reset choose each scene's pose and task."""
 
     def __init__(self, object_xml: str | Path, batch_size: int, config: EnvConfig = EnvConfig()):
         self.config = config
-        self.scene = build_scene(replace(config.scene, object_xml=str(object_xml)))
+        with _BUILD_LOCK:
+            self.scene = build_scene(replace(config.scene, object_xml=str(object_xml)))
+            self.geometry, self.part_names = load_parts(self.scene)
         self.batch_size = batch_size
-        self.geometry, self.part_names = load_parts(self.scene)
         self.kinematics = jax_ik.ArmKinematics.from_scene(self.scene)
         if config.backend == "mujoco":
             from partinstruct_mjx.sim.mujoco_backend import MujocoBackend

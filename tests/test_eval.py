@@ -4,6 +4,7 @@ the policy and planner interfaces, errors."""
 import json
 import math
 import warnings
+from dataclasses import replace
 
 import imageio_ffmpeg
 import jax
@@ -155,6 +156,28 @@ def test_rerun_resumes_and_other_settings_are_refused(metadata, run_dir, capsys)
     assert "other settings (seed: 0 there, 3 now)" in capsys.readouterr().err
 
 
+def test_outcomes_do_not_depend_on_the_workers(tmp_path):
+    """Two mugs' episodes rolled out by one worker and by two (each object in its own thread, each thread with its
+    own fork of the oracle and planner): the same records."""
+    episodes = select_episodes("test1", 40, seed=0, categories=["mug"])
+    per_mug = {}
+    for episode in episodes:
+        per_mug.setdefault(episode.obj_id, []).append(episode)
+    chosen = [e for mine in [m for m in per_mug.values() if len(m) >= 2][:2] for e in mine[:2]]
+    assert len(chosen) == 4
+    write_metadata(chosen, tmp_path / "two_mugs.json")
+    outcomes = []
+    for workers in (1, 2):
+        out = tmp_path / f"workers{workers}"
+        assert main(["eval", "--policy", "oracle", "--metadata", str(tmp_path / "two_mugs.json"), "--splits", "test1",
+                     "--batch-size", "2", "--max-steps", "30", "--oracle-tries", "2", "--planner", "oracle",
+                     "--workers", str(workers), "--out", str(out), "--quiet"]) == 0
+        results = json.loads((out / "results.json").read_text())
+        assert results["run"]["workers"] == workers
+        outcomes.append(results["episodes"])
+    assert outcomes[0] == outcomes[1]
+
+
 def test_a_custom_policy_gets_the_skill_instructions(metadata, tmp_path):
     """The Python API with a policy object: a policy that holds still gets each scene's current skill instruction."""
 
@@ -176,6 +199,10 @@ def test_a_custom_policy_gets_the_skill_instructions(metadata, tmp_path):
     assert len(policy.seen) == 4
     assert policy.seen[0][1].lower().startswith("touch")
     assert results["label"] == "hold (skill mode)"
+    assert results["run"]["workers"] == 1, "a policy without fork() runs in one thread"
+    with pytest.raises(EvalError, match=r"--workers 2 needs a policy and planner with fork\(\).*Hold has none"):
+        evaluate(replace(config, workers=2), tmp_path / "hold2", policy=policy, progress=False)
+    assert not (tmp_path / "hold2").exists()
 
 
 def test_task_mode_with_the_oracle_planner(metadata, tmp_path):
@@ -207,6 +234,7 @@ def test_oracle_planner_starts_at_the_first_skill(metadata):
     (["--batch-size", "0"], "batch_size must be >= 1"),
     (["--episodes-per-split", "0"], "episodes_per_split must be >= 1"),
     (["--oracle-tries", "0"], "oracle_tries must be >= 1"),
+    (["--workers", "0"], "workers must be >= 1"),
 ])
 def test_bad_arguments_are_named(tmp_path, capsys, argv, message):
     args = ["eval", "--policy", "oracle", "--out", str(tmp_path / "out"), "--quiet", *argv]
@@ -245,8 +273,9 @@ def test_mjx_backend_runs_the_same_evaluation(metadata, tmp_path):
 def test_eval_bench_rates_and_projection():
     from partinstruct_mjx.bench import evaluation
 
-    config = evaluation.bench_config(8, 16)
+    config = evaluation.bench_config(8, 16, oracle_tries=2, workers=3)
     assert config.splits == ("test1", "test2", "test3", "test4", "test5") and config.policy == "oracle"
+    assert (config.oracle_tries, config.workers) == (2, 3)
     result = evaluation.EvalBenchResult(config, evaluation.EvalRun(40, 30, 300.0),
                                         [evaluation.EvalRun(40, 30, 60.0), evaluation.EvalRun(40, 30, 40.0)])
     assert result.episodes_per_min == pytest.approx(50.0)  # median of 40 and 60 episodes/min
@@ -254,4 +283,4 @@ def test_eval_bench_rates_and_projection():
     assert result.compile_s == pytest.approx(250.0)
     assert result.full_evaluation_min == pytest.approx(1800 / 50 + 250 / 60)
     text = evaluation.markdown([result], "cpu (cpu)", "off")
-    assert "| 16 | 40 | 30 (75%) | 50.0 | 40.0 - 60.0 | 50.0 | 250.0 | 8.0 | 40.2 |" in text
+    assert "| 16 | 2 | 3 | 40 | 30 (75%) | 50.0 | 40.0 - 60.0 | 50.0 | 250.0 | 8.0 | 40.2 |" in text

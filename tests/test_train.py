@@ -262,11 +262,21 @@ def test_policy_replans_every_8_steps_in_the_env(cli_run, demo_dir):
         key = jax.random.PRNGKey(0)
         state = env.reset(key, episodes)
         policy.reset(env, state, key)
+        actions = []
         for step in range(10):
             action = policy.act(env, state, env.instructions(state), jax.random.fold_in(key, step))
             assert action.shape == (2, 7) and action.dtype == np.float32 and np.isfinite(action).all()
+            actions.append(action)
             state = env.step(state, action)
-    assert observed == [0, 7, 8], "clouds are rendered only for the 2 observation steps of each prediction"
+        # A fork (another evaluation worker's policy) shares the weights but not the history or the action queue.
+        fork, queued = policy.fork(), policy._queue.copy()
+        state = env.reset(key, episodes)
+        fork.reset(env, state, key)
+        np.testing.assert_array_equal(fork.act(env, state, env.instructions(state), jax.random.fold_in(key, 0)),
+                                      actions[0])
+        assert fork._params is policy._params
+        np.testing.assert_array_equal(policy._queue, queued)
+    assert observed == [0, 7, 8, 0], "clouds are rendered only for the 2 observation steps of each prediction"
     with PartInstructEnv(path, 2, EnvConfig(rotation="quat")) as env, pytest.raises(DataError, match="Euler"):
         policy.reset(env, env.reset(key, episodes), key)
 

@@ -20,11 +20,10 @@ import hashlib
 import json
 import math
 import os
-import queue
 import threading
 import time
 from collections import Counter
-from concurrent.futures import FIRST_EXCEPTION, ThreadPoolExecutor, wait
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
@@ -38,6 +37,7 @@ from partinstruct_mjx.errors import DataError, TaskError
 from partinstruct_mjx.paths import assets_root
 from partinstruct_mjx.tasks.episodes import (SPLIT_ID_STRIDE, SPLIT_TYPES, SPLITS, Episode, generate_episodes,
                                              read_metadata, validate_episodes, write_metadata)
+from partinstruct_mjx.workers import default_workers, run_in_threads, threads_per_worker
 
 ALL_TYPES = "all-types"
 """Pseudo-split: train for task types 1-10 plus test4 for 11-16 (every type once, for a per-type table)."""
@@ -126,12 +126,8 @@ def synthesize(episodes: list[Episode], out_dir: str | os.PathLike, batch_size: 
     tally = Counter()
     bar = tqdm(total=len(todo), desc="demos", unit="episode", disable=not progress or not todo)
     lock = threading.Lock()
-    stop = threading.Event()
-    work = queue.SimpleQueue()
-    for group in groups.items():
-        work.put(group)
     workers = max(1, min(workers or default_workers(backend), len(groups)))
-    threads_each = max(1, (num_threads or os.cpu_count() or 1) // workers)
+    threads_each = threads_per_worker(num_threads, workers)
 
     def counted(future) -> None:
         """Wait for a committed batch and count it."""
@@ -146,44 +142,31 @@ def synthesize(episodes: list[Episode], out_dir: str | os.PathLike, batch_size: 
                             success=f"{tally['successes'] / tally['processed']:.0%}", refresh=False)
             bar.update(record["episodes"])
 
-    def simulate() -> None:
-        """Take objects off the queue until it is empty (or the run stops); commit each finished batch."""
-        while not stop.is_set():
-            try:
-                key, mine = work.get_nowait()
-            except queue.Empty:
-                return
-            with _BUILD_LOCK:
-                worker = _ObjectWorker(objects[key], _bucket(len(mine), batch_size), backend, threads_each,
-                                       args["synthesis"]["oracle_tries"])
-            pending = None
-            try:
-                for batch in worker.run(mine, jax.random.PRNGKey(seed), sampler, render_chunk, stop):
-                    if pending is not None:
-                        counted(pending)
-                    pending = committer.submit(worker.commit, batch, writer)
-            finally:
-                worker.close()
+    def simulate(slot: int, group, stop: threading.Event) -> None:
+        """Simulate one object's episodes (until the run stops); commit each finished batch."""
+        key, mine = group
+        worker = _ObjectWorker(objects[key], _bucket(len(mine), batch_size), backend, threads_each,
+                               args["synthesis"]["oracle_tries"])
+        pending = None
+        try:
+            for batch in worker.run(mine, jax.random.PRNGKey(seed), sampler, render_chunk, stop):
                 if pending is not None:
                     counted(pending)
+                pending = committer.submit(worker.commit, batch, writer)
+        finally:
+            worker.close()
+            if pending is not None:
+                counted(pending)
 
-    # `workers` threads simulate objects at once (one's physics runs while another's oracle and IK do: JAX and
-    # MuJoCo release the GIL); one thread renders and writes finished batches beside them.
+    # `workers` threads simulate objects at once; one thread renders and writes finished batches beside them.
     with ThreadPoolExecutor(max_workers=1, thread_name_prefix="partinstruct-demos-commit") as committer:
-        with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="partinstruct-demos-sim") as simulators:
-            runs = [simulators.submit(simulate) for _ in range(workers)]
-            try:
-                wait(runs, return_when=FIRST_EXCEPTION)
-                for run in runs:
-                    if run.done() and run.exception() is not None:
-                        raise run.exception()
-            except BaseException:
-                stop.set()
-                wait(runs)
-                bar.close()
-                committer.shutdown(wait=True)
-                writer.finalize()
-                raise
+        try:
+            run_in_threads(groups.items(), workers, simulate, "partinstruct-demos-sim")
+        except BaseException:
+            bar.close()
+            committer.shutdown(wait=True)
+            writer.finalize()
+            raise
     bar.close()
     tick = time.perf_counter()
     summary = writer.finalize()
@@ -193,12 +176,6 @@ def synthesize(episodes: list[Episode], out_dir: str | os.PathLike, batch_size: 
                       "processed": tally["processed"], "successes": tally["successes"], "batch_size": batch_size,
                       "workers": workers, "timing": timing.as_dict()}
     return summary
-
-
-def default_workers(backend: str) -> int:
-    """Objects simulated at once by default: 2 on the mujoco backend with 2 or more cores (one thread's physics runs
-    while the other's JAX oracle and IK do), 1 on the mjx backend (one device)."""
-    return 1 if backend == "mjx" else min(2, os.cpu_count() or 1)
 
 
 def _bucket(count: int, batch_size: int) -> int:
@@ -255,10 +232,6 @@ class _Finished:
     chunk: int
     env_s: float
     rollout_s: float
-
-
-_BUILD_LOCK = threading.Lock()
-"""Envs are built one at a time (MuJoCo's XML compiler is not known to be thread-safe)."""
 
 
 class _ObjectWorker:

@@ -85,12 +85,16 @@ def add_eval_parser(subparsers) -> argparse.ArgumentParser:
                         help="seed of the generated episodes and of the policy's random keys (default 0)")
     parser.add_argument("--max-steps", type=int, default=None, metavar="N",
                         help="cap every episode at N env steps (default: the split's limit); for quick checks")
-    parser.add_argument("--threads", type=int, default=None, metavar="N", help="physics threads (default: all cores)")
+    parser.add_argument("--threads", type=int, default=None, metavar="N",
+                        help="physics threads, shared out among the workers (default: all cores)")
+    parser.add_argument("--workers", type=int, default=None, metavar="N",
+                        help="objects rolled out at once, each in a thread with its own env and a fork of the policy "
+                             "(default 2 on the mujoco backend, 1 on mjx; outcomes do not depend on it)")
     parser.add_argument("--assets", type=Path, default=None, metavar="DIR",
                         help="assets root with catalog.json (default: the built-in library)")
     parser.add_argument("--oracle-tries", type=int, default=None, metavar="N",
                         help="--policy oracle: tries per grasp or touch in its look-ahead copy of the env (default "
-                             "4; 1: no look-ahead, the closed-loop oracle alone)")
+                             "6; 1: no look-ahead, the closed-loop oracle alone)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     parser.set_defaults(func=run_eval)
     return parser
@@ -115,7 +119,7 @@ def run_eval(args: argparse.Namespace) -> int:
         metadata=None if args.metadata is None else str(args.metadata),
         categories=tuple(args.categories) if args.categories else None,
         assets=None if args.assets is None else str(args.assets), num_threads=args.threads,
-        oracle_tries=args.oracle_tries)
+        oracle_tries=args.oracle_tries, workers=args.workers)
     enable_compilation_cache()
     try:
         results = evaluate(config, args.out, progress=not args.quiet)

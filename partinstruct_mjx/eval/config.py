@@ -41,9 +41,13 @@ class EvalConfig:
       categories: only these object categories.
       assets: assets root with catalog.json (None: the built-in library).
       num_threads: physics threads of the mujoco backend (None: all cores).
+      workers: objects rolled out at once, each in a thread with its own env (num_threads // workers physics
+        threads) and its own fork of the policy and planner (None: 2 on the mujoco backend, 1 on mjx, 1 for a
+        policy or planner without `fork`).
       oracle_tries: `--policy oracle` only: tries per grasp or touch in its private look-ahead copy of the env
         (1: the closed-loop oracle alone; None: `oracle.backtrack.SEGMENT_TRIES`).
-    `videos` and `num_threads` do not change outcomes, so a run directory may be resumed with other values.
+    `videos`, `num_threads` and `workers` do not change outcomes, so a run directory may be resumed with other
+    values.
     """
 
     policy: str = ORACLE
@@ -62,6 +66,7 @@ class EvalConfig:
     assets: str | None = None
     num_threads: int | None = None
     oracle_tries: int | None = None
+    workers: int | None = None
 
     def __post_init__(self):
         unknown = [s for s in self.splits if s not in SPLITS]
@@ -73,7 +78,8 @@ class EvalConfig:
             raise EvalError(f"unknown mode '{self.mode}'; expected one of {', '.join(MODES)}")
         if self.backend not in ("mujoco", "mjx"):
             raise EvalError(f"unknown backend '{self.backend}'; expected mujoco or mjx")
-        for name in ("batch_size", "planner_every", "episodes_per_split", "max_steps", "oracle_tries"):
+        for name in ("batch_size", "planner_every", "episodes_per_split", "max_steps", "oracle_tries",
+                     "workers"):
             value = getattr(self, name)
             if value is not None and value < 1:
                 raise EvalError(f"{name} must be >= 1, got {value}")
@@ -85,5 +91,5 @@ class EvalConfig:
     def identity(self) -> dict:
         """The settings a resumed run must share with its run directory: all that can change an outcome."""
         fields = asdict(self)
-        del fields["num_threads"], fields["videos"]
+        del fields["num_threads"], fields["videos"], fields["workers"]
         return {k: list(v) if isinstance(v, tuple) else v for k, v in fields.items()}

@@ -15,7 +15,8 @@ from partinstruct_mjx.eval.skills import SkillProgress
 
 @runtime_checkable
 class Planner(Protocol):
-    """Chooses the instruction each scene's low-level policy follows."""
+    """Chooses the instruction each scene's low-level policy follows. Optional, as for policies: `fork() -> Planner`,
+    a planner for another worker thread."""
 
     def instructions(self, env, state, step: int) -> list[str]:
         """One instruction per scene of the batch; `step` is the env step about to be taken (0: new episodes, whose
@@ -31,6 +32,10 @@ class OraclePlanner:
 
     def __init__(self):
         self._progress: SkillProgress | None = None
+
+    def fork(self) -> OraclePlanner:
+        """A planner for another worker thread (its own skill progress)."""
+        return OraclePlanner()
 
     def instructions(self, env, state, step: int) -> list[str]:
         if step == 0 or self._progress is None or self._progress.env is not env:

@@ -15,7 +15,11 @@ from partinstruct_mjx.oracle.rollout import OraclePolicy
 @runtime_checkable
 class Policy(Protocol):
     """Acts in every scene of a `PartInstructEnv` batch; may read the env and its state (observations: `state.obs`,
-    `env.point_clouds(state, key)`, `env.camera_observations(state)`)."""
+    `env.point_clouds(state, key)`, `env.camera_observations(state)`).
+
+    Optional: `fork() -> Policy`, a policy for another worker thread that shares what is read-only (weights) and keeps
+    its own per-batch state; `evaluate` runs objects in several threads only when the policy (and planner) can fork.
+    """
 
     def reset(self, env, state, key) -> None:
         """New episodes in every scene of the batch (`env.episodes`)."""

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import os
+import threading
 import time
 import warnings
 from dataclasses import asdict
@@ -27,6 +28,7 @@ from partinstruct_mjx.eval.planner import Planner, make_planner
 from partinstruct_mjx.eval.policy import OraclePolicy, Policy, load_policy
 from partinstruct_mjx.eval.skills import SkillProgress
 from partinstruct_mjx.tasks.episodes import SPLITS, Episode
+from partinstruct_mjx.workers import default_workers, run_in_threads, threads_per_worker
 
 RESULTS = "results.json"
 REPORT = "results.md"
@@ -87,39 +89,69 @@ def evaluate(config: EvalConfig, out_dir: str | os.PathLike, policy: Policy | No
 
     start = time.perf_counter()
     key = jax.random.PRNGKey(config.seed)
+    groups = object_groups(todo)
+    workers = max(1, min(_workers(config, policy, planner), len(groups)))
+    threads_each = threads_per_worker(config.num_threads, workers)
+    meta["run"]["workers"] = workers
+    # Each worker thread acts with a policy (and planner) of its own: they keep per-batch state.
+    agents = [(policy, planner)] + [(policy.fork(), None if planner is None else planner.fork())
+                                    for _ in range(workers - 1)]
+    lock = threading.Lock()
     bar = tqdm(total=len(todo), desc="eval", unit="episode", disable=not progress or not todo)
-    try:
-        for obj, mine in object_groups(todo).items():
-            envs = {}
-            try:
-                for batch, size in object_batches(mine, config.batch_size):
-                    if size not in envs:
-                        envs[size] = _make_env(objects[obj], size, config)
-                    for record in _run_batch(envs[size], batch, policy, planner, config, key, filmed, out_dir):
-                        records[record["ep_id"]] = record
+
+    def run_object(slot: int, group, stop: threading.Event) -> None:
+        """Roll out one object's batches (until the run stops); record and write each finished batch."""
+        obj, mine = group
+        envs = {}
+        try:
+            for batch, size in object_batches(mine, config.batch_size):
+                if stop.is_set():
+                    return
+                if size not in envs:
+                    envs[size] = _make_env(objects[obj], size, config, threads_each)
+                finished = _run_batch(envs[size], batch, *agents[slot], config, key, filmed, out_dir)
+                with lock:
+                    records.update((record["ep_id"], record) for record in finished)
                     meta["run"]["episodes_run"] += len(batch)
                     meta["run"]["wall_s"] = time.perf_counter() - start
                     _write(out_dir, config, meta, records, complete=False)
                     successes = sum(r["success"] for r in records.values())
-                    bar.set_postfix(episodes_per_min=f"{60 * meta['run']['episodes_run'] / meta['run']['wall_s']:.1f}",
-                                    success=f"{successes / len(records):.0%}", refresh=False)
+                    bar.set_postfix(
+                        episodes_per_min=f"{60 * meta['run']['episodes_run'] / meta['run']['wall_s']:.1f}",
+                        success=f"{successes / len(records):.0%}", refresh=False)
                     bar.update(len(batch))
-            finally:
-                for env in envs.values():
-                    env.close()
+        finally:
+            for env in envs.values():
+                env.close()
+
+    try:
+        run_in_threads(groups.items(), workers, run_object, "partinstruct-eval")
     finally:
         bar.close()
-        if isinstance(policy, OraclePolicy):
-            policy.close()
+        for agent, _ in agents:
+            if isinstance(agent, OraclePolicy):
+                agent.close()
     meta["run"]["wall_s"] = time.perf_counter() - start
     return _write(out_dir, config, meta, records, complete=True)
 
 
-def _make_env(object_xml: Path, size: int, config: EvalConfig):
+def _workers(config: EvalConfig, policy: Policy, planner: Planner | None) -> int:
+    """Worker threads: `config.workers`, by default `default_workers` where the policy and planner can fork (one
+    copy per thread), else 1. EvalError for several workers asked of a policy or planner that cannot fork."""
+    forkable = [a for a in (policy, planner) if a is not None and not callable(getattr(a, "fork", None))]
+    if config.workers is None:
+        return 1 if forkable else default_workers(config.backend)
+    if config.workers > 1 and forkable:
+        raise EvalError(f"--workers {config.workers} needs a policy and planner with fork() (a copy for each worker "
+                        f"thread); {type(forkable[0]).__name__} has none: use --workers 1")
+    return config.workers
+
+
+def _make_env(object_xml: Path, size: int, config: EvalConfig, num_threads: int):
     from partinstruct_mjx.env import EnvConfig, PartInstructEnv
 
     return PartInstructEnv(object_xml, size, EnvConfig(backend=config.backend, skill_mode=config.mode == "skill",
-                                                       num_threads=config.num_threads))
+                                                       num_threads=num_threads))
 
 
 def _run_batch(env, batch: list[Episode], policy: Policy, planner: Planner | None, config: EvalConfig,
@@ -166,8 +198,13 @@ def _run_batch(env, batch: list[Episode], policy: Policy, planner: Planner | Non
     records = [_record(batch[b], bool(success[b]), float(completion[b]), int(steps[b]), int(horizon[b]),
                        int(skill_at[b])) for b in range(real)]
     for b, film in films.items():
-        records[b]["video"] = film.render(env, out_dir, records[b])
+        with _RENDER_LOCK:
+            records[b]["video"] = film.render(env, out_dir, records[b])
     return records
+
+
+_RENDER_LOCK = threading.Lock()
+"""Videos are rendered one at a time (one OpenGL context in use, one ffmpeg encoder running)."""
 
 
 class _Film:

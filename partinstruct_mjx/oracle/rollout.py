@@ -102,6 +102,10 @@ class OraclePolicy:
             self._segment = np.zeros(env.batch_size, np.int32)
             self.state = backtrack.with_try(self.state, self._choices[:, 0])
 
+    def fork(self) -> OraclePolicy:
+        """An oracle for another worker thread (its own machine state and look-ahead copy)."""
+        return OraclePolicy(self.lookahead_tries)
+
     def reset_rows(self, env: PartInstructEnv, state, key: jax.Array, rows: np.ndarray) -> None:
         """New episodes in the scenes of `rows` (after `env.reset_rows`); without look-ahead only."""
         if self._choices is not None:

@@ -13,6 +13,7 @@ the sampler the training demos were rendered with.
 
 from __future__ import annotations
 
+import copy
 import json
 import os
 from collections import deque
@@ -64,6 +65,13 @@ class DiffusionPolicy:
             return actions[:, first:first + model_config.action_steps]
 
         self._plan = plan
+
+    def fork(self) -> DiffusionPolicy:
+        """A policy for another worker thread: the same weights and compiled sampler, its own history and queue."""
+        other = copy.copy(self)
+        other._history = deque(maxlen=self.config.obs_steps)
+        other._queue = np.zeros((0, 0, 7), np.float32)
+        return other
 
     def reset(self, env, state, key) -> None:
         """Forget the history and the queued actions (`state` and `key` are not needed: the first `act` observes)."""
