@@ -138,12 +138,12 @@ def evaluate(config: EvalConfig, out_dir: str | os.PathLike, policy: Policy | No
 def _workers(config: EvalConfig, policy: Policy, planner: Planner | None) -> int:
     """Worker threads: `config.workers`, by default `default_workers` where the policy and planner can fork (one
     copy per thread), else 1. EvalError for several workers asked of a policy or planner that cannot fork."""
-    forkable = [a for a in (policy, planner) if a is not None and not callable(getattr(a, "fork", None))]
+    unforkable = [a for a in (policy, planner) if a is not None and not callable(getattr(a, "fork", None))]
     if config.workers is None:
-        return 1 if forkable else default_workers(config.backend)
-    if config.workers > 1 and forkable:
+        return 1 if unforkable else default_workers(config.backend)
+    if config.workers > 1 and unforkable:
         raise EvalError(f"--workers {config.workers} needs a policy and planner with fork() (a copy for each worker "
-                        f"thread); {type(forkable[0]).__name__} has none: use --workers 1")
+                        f"thread); {type(unforkable[0]).__name__} has none: use --workers 1")
     return config.workers
 
 
