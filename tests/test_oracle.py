@@ -36,6 +36,14 @@ def _env(episode, batch=1):
     return PartInstructEnv(xml, batch, EnvConfig(skill_mode=False))
 
 
+def _started(env, episodes):
+    """The env reset on `episodes` and an oracle started on it (both with key 0)."""
+    state = env.reset(jax.random.PRNGKey(0), episodes)
+    policy = OraclePolicy()
+    policy.reset(env, state, jax.random.PRNGKey(0))
+    return state, policy
+
+
 def _clouds(env, state, part_name):
     data = jax.tree_util.tree_map(lambda x: jnp.asarray(x)[0], state.data)
     geo = env.geometry
@@ -222,9 +230,7 @@ def test_an_air_turn_ramps_up(episodes):
     episode = next(e for e in episodes if e.obj_id == "bottle_007" and e.task_type == 8)
     turn = [step.name for step in episode.chain].index("rotate_obj")
     with _env(episode) as env:
-        state = env.reset(jax.random.PRNGKey(0), [episode])
-        policy = OraclePolicy()
-        policy.reset(env, state, jax.random.PRNGKey(0))
+        state, policy = _started(env, [episode])
         per_step, last = [], None
         for _ in range(300):
             before = np.asarray(policy.state.cmd_quat[0])
@@ -251,9 +257,7 @@ def test_a_turn_that_moved_the_object_carries_it_back(episodes):
     episode = next(e for e in episodes if e.obj_id == "display_005" and e.task_type == 12)
     turn = [step.name for step in episode.chain].index("rotate_obj")
     with _env(episode) as env:
-        state = env.reset(jax.random.PRNGKey(0), [episode])
-        policy = OraclePolicy()
-        policy.reset(env, state, jax.random.PRNGKey(0))
+        state, policy = _started(env, [episode])
         stages, moved = [], []
         for _ in range(300):
             state = env.step(state, policy.act(env, state))
@@ -274,9 +278,7 @@ def test_a_pre_shaped_grasp_approaches_with_its_opening(episodes):
     # fully, from the via point until they close.
     episode = next(e for e in episodes if e.obj_id == "dispenser_000" and e.task_type == 1)
     with _env(episode) as env:
-        state = env.reset(jax.random.PRNGKey(0), [episode])
-        policy = OraclePolicy()
-        policy.reset(env, state, jax.random.PRNGKey(0))
+        state, policy = _started(env, [episode])
         approaching = []
         for _ in range(40):
             action = policy.act(env, state)
@@ -320,9 +322,7 @@ def test_a_scene_planned_alone_gets_the_plan_it_gets_in_a_batch(episodes):
     """A batch of one is planned without vmap (faster on a CPU); its grasp plan is the batched plan of that scene."""
     episode = next(e for e in episodes if e.obj_class == "mug" and e.task_type == 3)
     with _env(episode, batch=2) as env:
-        state = env.reset(jax.random.PRNGKey(0), [episode, episode])
-        policy = OraclePolicy()
-        policy.reset(env, state, jax.random.PRNGKey(0))
+        state, policy = _started(env, [episode, episode])
         data, joints = state.data.for_jit(), state.info["joint_targets"]
         oracle = policy.state.replace(needs_plan=jnp.ones_like(policy.state.needs_plan))
         batched = jax.jit(machine.plan)(oracle, data, env.geometry, env.kinematics, joints)
@@ -365,9 +365,7 @@ def test_a_grasp_without_candidates_is_sampled_again_then_fails():
     episode = dataclasses.replace(base, obj_class="laptop", obj_id="laptop_000", chain=(step,),
                                   obj_pose=(0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0))
     with _env(episode) as env:
-        state = env.reset(jax.random.PRNGKey(0), [episode])
-        policy = OraclePolicy()
-        policy.reset(env, state, jax.random.PRNGKey(0))
+        state, policy = _started(env, [episode])
         for attempt in range(1, machine.MAX_ATTEMPTS):
             policy.act(env, state)
             assert int(policy.state.attempt[0]) == attempt
@@ -460,9 +458,7 @@ def test_backtracking_restores_a_scene_exactly_and_leaves_the_others(episodes):
     same actions again, repeats its steps exactly; the scene beside it goes on as if nothing happened."""
     batch = [e for e in episodes if e.obj_class == "mug"][:2]
     with _env(batch[0], 2) as env:
-        state = env.reset(jax.random.PRNGKey(0), batch)
-        policy = OraclePolicy()
-        policy.reset(env, state, jax.random.PRNGKey(0))
+        state, policy = _started(env, batch)
         search = backtrack.Backtracker(env, state, policy.state, tries=2)
         start = hold_action(np.asarray(state.obs["tcp_pose"]))
         actions = [start + [0.0, 0.0, -0.01 * k, 0, 0, 0, 0] for k in range(6)]
