@@ -554,6 +554,29 @@ def test_a_turn_on_the_table_spins_the_object_about_its_footprint():
     np.testing.assert_allclose(np.asarray(pivot)[:2], centre[:2], atol=2e-3)
 
 
+def test_a_turn_in_the_air_keeps_the_hand_above_the_table():
+    # A mug (radius 4 cm, 10 cm tall) held from above by its rim, its base 10 cm over the table, turned upside down.
+    # Turned about its base the hand, now pointing up, would pass its palm and wrist under the table top, which stops
+    # the arm; the plan raises the hand or turns about another pivot.
+    kinematics = jax_ik.ArmKinematics.from_scene(build_scene())
+    base = np.array([0.05, 0.0, TABLE_HEIGHT + 0.10])
+    angles, heights = np.meshgrid(np.linspace(0, 2 * np.pi, 24, endpoint=False), np.linspace(0.0, 0.10, 6))
+    points = np.stack([base[0] + 0.04 * np.cos(angles.ravel()), base[1] + 0.04 * np.sin(angles.ravel()),
+                       base[2] + heights.ravel()], axis=1)
+    hand_pos = jnp.array(base + [0.04, 0.0, 0.09], jnp.float32)
+    hand_quat = candidates.tcp_quat(jnp.array([0.0, 0.0, -1.0]), jnp.array([1.0, 0.0, 0.0]))
+    q, _, _ = jax_ik.solve_ik(kinematics, jnp.asarray(HOME_ARM_QPOS, jnp.float32)[None], hand_pos[None],
+                              hand_quat[None])
+    found, axis, angle, pivot, raise_by, _ = jax.jit(rotation.plan)(
+        kinematics, q[0], hand_pos, hand_quat, jnp.asarray(base, jnp.float32), jnp.asarray(points, jnp.float32),
+        jnp.ones(len(points), bool), jnp.array([0.0, 0.0, 0.08]), jnp.array([0.0, 0.0, -1.0]), jnp.asarray(False))
+    assert bool(found) and float(angle) > 2.5
+    for fraction in (0.5, 1.0):
+        pos, quat = rotation.turned_pose(pivot, axis, angle, fraction, hand_pos, hand_quat)
+        centres = pos + raise_by * jnp.array([0.0, 0.0, 1.0]) + quat_rotate(quat[None], rotation.HAND_SPHERES[:, :3])
+        assert float((centres[:, 2] - rotation.HAND_SPHERES[:, 3]).min()) > TABLE_HEIGHT + 0.015
+
+
 def test_touching_again_after_a_push_aims_over_the_rear_faces_top():
     # A 6 x 4 x 3 cm block pushed along +x: the fingertip aims just above its rear face's top edge, in line with where
     # it is, not at the face (where the pads' edge would stop it over 1 cm from the part).

@@ -8,8 +8,8 @@ or the long way, each about the middle of the object's footprint (the object spi
 an off-centre grasp, a standing bottle was dragged round on the table and twisted out of the fingers) or the TCP. The
 hand follows the object rigidly, so a turn R about pivot k takes the TCP pose (p, q) to (k + R (p - k), R q). An
 option is kept when the batched JAX IK reaches the TCP at every sixth of the way along it, each from the previous
-solution without a joint jumping, and the turned object stays above the table (the hand is raised for it where
-needed); the cheapest kept option (turn angle, object displacement, raise) wins. Pure JAX for one environment.
+solution without a joint jumping, and the turned object and hand stay above the table (the hand is raised for them
+where needed); the cheapest kept option (turn angle, object displacement, raise) wins. Pure JAX for one environment.
 """
 
 from __future__ import annotations
@@ -38,6 +38,11 @@ MAX_JOINT_JUMP = 0.8
 """Largest joint change (rad) between two of those points: the env's IK follows the turn in small steps, so a
 solution that only an elbow or wrist flip reaches is not one the arm can turn through."""
 UP = np.array([0.0, 0.0, 1.0], np.float32)
+HAND_SPHERES = np.array([[0.0, 0.085, -0.02, 0.028], [0.0, -0.085, -0.02, 0.028], [0.0, 0.0, -0.082, 0.045],
+                         [0.0, 0.0, -0.192, 0.045]], np.float32)
+"""Spheres (centre in the TCP frame, radius) bounding the hand's palm capsule and the last link's, which a turn in
+the air keeps above the table too: a mug turned upside down by its rim about its origin would have put the palm
+under the table top, and the arm, stopped by the table, never finished the turn (type 16)."""
 
 
 def arc(v: jnp.ndarray, d: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray]:
@@ -112,8 +117,13 @@ def plan(kinematics, q, hand_pos, hand_quat, object_pos, object_points, object_v
             moved = pivot + quat_rotate(turn, object_points - pivot)
             return jnp.where(object_valid, moved[:, 2], jnp.inf).min()
 
-        raise_by = jnp.where(on_table, 0.0, jnp.maximum(
-            0.0, TABLE_HEIGHT + TABLE_CLEARANCE - jnp.minimum(lowest(0.5), lowest(1.0))))
+        def lowest_hand(fraction):
+            pos, quat = turned_pose(pivot, axis, angle, fraction, hand_pos, hand_quat)
+            centres = pos + quat_rotate(quat[None], HAND_SPHERES[:, :3])
+            return (centres[:, 2] - HAND_SPHERES[:, 3]).min()
+
+        raise_by = jnp.where(on_table, 0.0, jnp.maximum(0.0, TABLE_HEIGHT + TABLE_CLEARANCE - jnp.minimum(
+            jnp.minimum(lowest(0.5), lowest(1.0)), jnp.minimum(lowest_hand(0.5), lowest_hand(1.0)))))
 
         def follow(carry, fraction):
             joints, ok = carry
