@@ -533,22 +533,34 @@ def test_no_episodes_yield_nothing():
     assert list(run_oracle(None, [], jax.random.PRNGKey(0))) == []
 
 
+def _cylinder(base, radius, height, rings):
+    """Points (M, 3) on the side of an upright cylinder standing on `base`: 24 per ring, `rings` rings."""
+    angles, heights = np.meshgrid(np.linspace(0, 2 * np.pi, 24, endpoint=False), np.linspace(0.0, height, rings))
+    return np.stack([base[0] + radius * np.cos(angles.ravel()), base[1] + radius * np.sin(angles.ravel()),
+                     base[2] + heights.ravel()], axis=1)
+
+
+def _planned_turn(points, hand_pos, closing, object_pos, v, d, on_table):
+    """rotation.plan for a hand holding the object from above at `hand_pos` (pads closing along `closing`), the arm
+    solved there from home: (found, axis, angle, pivot, raise)."""
+    kinematics = jax_ik.ArmKinematics.from_scene(build_scene())
+    hand_quat = candidates.tcp_quat(jnp.array([0.0, 0.0, -1.0]), closing)
+    q, _, _ = jax_ik.solve_ik(kinematics, jnp.asarray(HOME_ARM_QPOS, jnp.float32)[None], hand_pos[None],
+                              hand_quat[None])
+    found, axis, angle, pivot, raise_by, _ = jax.jit(rotation.plan)(
+        kinematics, q[0], hand_pos, hand_quat, jnp.asarray(object_pos, jnp.float32), jnp.asarray(points, jnp.float32),
+        jnp.ones(len(points), bool), jnp.asarray(v, jnp.float32), jnp.asarray(d, jnp.float32), jnp.asarray(on_table))
+    return found, axis, angle, pivot, raise_by
+
+
 def test_a_turn_on_the_table_spins_the_object_about_its_footprint():
     # A standing cylinder (radius 3 cm) held from above 2.5 cm off its axis. Turned about the TCP it would be dragged
     # round on the table (a bottle twisted out of the fingers so); the plan spins it in place about its footprint.
-    kinematics = jax_ik.ArmKinematics.from_scene(build_scene())
     centre = np.array([0.05, 0.0, TABLE_HEIGHT])
-    angles, heights = np.meshgrid(np.linspace(0, 2 * np.pi, 24, endpoint=False), np.linspace(0.0, 0.12, 7))
-    points = np.stack([centre[0] + 0.03 * np.cos(angles.ravel()), centre[1] + 0.03 * np.sin(angles.ravel()),
-                       centre[2] + heights.ravel()], axis=1)
     hand_pos = jnp.array(centre + [0.025, 0.0, 0.10], jnp.float32)
-    hand_quat = candidates.tcp_quat(jnp.array([0.0, 0.0, -1.0]), jnp.array([0.0, 1.0, 0.0]))
-    q, _, _ = jax_ik.solve_ik(kinematics, jnp.asarray(HOME_ARM_QPOS, jnp.float32)[None], hand_pos[None],
-                              hand_quat[None])
-    found, axis, angle, pivot, _, _ = jax.jit(rotation.plan)(
-        kinematics, q[0], hand_pos, hand_quat, jnp.array(centre + [0.0, 0.0, 0.06], jnp.float32),
-        jnp.asarray(points, jnp.float32), jnp.ones(len(points), bool), jnp.array([1.0, 0.0, 0.0]),
-        jnp.array([0.0, 1.0, 0.0]), jnp.asarray(True))
+    found, axis, angle, pivot, _ = _planned_turn(
+        _cylinder(centre, 0.03, 0.12, 7), hand_pos, jnp.array([0.0, 1.0, 0.0]), centre + [0.0, 0.0, 0.06],
+        [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], on_table=True)
     assert bool(found)
     assert float(angle) == pytest.approx(np.pi / 2, abs=1e-3) and abs(float(axis[2])) == pytest.approx(1.0)
     np.testing.assert_allclose(np.asarray(pivot)[:2], centre[:2], atol=2e-3)
@@ -558,23 +570,16 @@ def test_a_turn_in_the_air_keeps_the_hand_above_the_table():
     # A mug (radius 4 cm, 10 cm tall) held from above by its rim, its base 10 cm over the table, turned upside down.
     # Turned about its base the hand, now pointing up, would pass its palm and wrist under the table top, which stops
     # the arm; the plan raises the hand or turns about another pivot.
-    kinematics = jax_ik.ArmKinematics.from_scene(build_scene())
     base = np.array([0.05, 0.0, TABLE_HEIGHT + 0.10])
-    angles, heights = np.meshgrid(np.linspace(0, 2 * np.pi, 24, endpoint=False), np.linspace(0.0, 0.10, 6))
-    points = np.stack([base[0] + 0.04 * np.cos(angles.ravel()), base[1] + 0.04 * np.sin(angles.ravel()),
-                       base[2] + heights.ravel()], axis=1)
     hand_pos = jnp.array(base + [0.04, 0.0, 0.09], jnp.float32)
-    hand_quat = candidates.tcp_quat(jnp.array([0.0, 0.0, -1.0]), jnp.array([1.0, 0.0, 0.0]))
-    q, _, _ = jax_ik.solve_ik(kinematics, jnp.asarray(HOME_ARM_QPOS, jnp.float32)[None], hand_pos[None],
-                              hand_quat[None])
-    found, axis, angle, pivot, raise_by, _ = jax.jit(rotation.plan)(
-        kinematics, q[0], hand_pos, hand_quat, jnp.asarray(base, jnp.float32), jnp.asarray(points, jnp.float32),
-        jnp.ones(len(points), bool), jnp.array([0.0, 0.0, 0.08]), jnp.array([0.0, 0.0, -1.0]), jnp.asarray(False))
+    closing = jnp.array([1.0, 0.0, 0.0])
+    found, axis, angle, pivot, raise_by = _planned_turn(
+        _cylinder(base, 0.04, 0.10, 6), hand_pos, closing, base, [0.0, 0.0, 0.08], [0.0, 0.0, -1.0], on_table=False)
     assert bool(found) and float(angle) > 2.5
+    hand_quat = candidates.tcp_quat(jnp.array([0.0, 0.0, -1.0]), closing)
     for fraction in (0.5, 1.0):
         pos, quat = rotation.turned_pose(pivot, axis, angle, fraction, hand_pos, hand_quat)
-        centres = pos + raise_by * jnp.array([0.0, 0.0, 1.0]) + quat_rotate(quat[None], rotation.HAND_SPHERES[:, :3])
-        assert float((centres[:, 2] - rotation.HAND_SPHERES[:, 3]).min()) > TABLE_HEIGHT + 0.015
+        assert float(rotation.hand_bottom(pos + raise_by * jnp.array([0.0, 0.0, 1.0]), quat)) > TABLE_HEIGHT + 0.015
 
 
 def test_touching_again_after_a_push_aims_over_the_rear_faces_top():

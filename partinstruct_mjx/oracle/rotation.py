@@ -101,6 +101,12 @@ def turned_pose(pivot, axis, angle, fraction, hand_pos, hand_quat):
     return pos, quat / jnp.linalg.norm(quat)
 
 
+def hand_bottom(pos, quat):
+    """Height of the lowest point of the hand's bounding spheres (HAND_SPHERES) with the TCP at pose (pos, quat)."""
+    centres = pos + quat_rotate(quat[None], HAND_SPHERES[:, :3])
+    return (centres[:, 2] - HAND_SPHERES[:, 3]).min()
+
+
 def plan(kinematics, q, hand_pos, hand_quat, object_pos, object_points, object_valid, v, d, on_table):
     """The turn to make: (found, axis (3,), angle, pivot (3,), raise, joints (7,) at its end) for one environment.
 
@@ -118,9 +124,7 @@ def plan(kinematics, q, hand_pos, hand_quat, object_pos, object_points, object_v
             return jnp.where(object_valid, moved[:, 2], jnp.inf).min()
 
         def lowest_hand(fraction):
-            pos, quat = turned_pose(pivot, axis, angle, fraction, hand_pos, hand_quat)
-            centres = pos + quat_rotate(quat[None], HAND_SPHERES[:, :3])
-            return (centres[:, 2] - HAND_SPHERES[:, 3]).min()
+            return hand_bottom(*turned_pose(pivot, axis, angle, fraction, hand_pos, hand_quat))
 
         raise_by = jnp.where(on_table, 0.0, jnp.maximum(0.0, TABLE_HEIGHT + TABLE_CLEARANCE - jnp.minimum(
             jnp.minimum(lowest(0.5), lowest(1.0)), jnp.minimum(lowest_hand(0.5), lowest_hand(1.0)))))
