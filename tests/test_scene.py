@@ -98,3 +98,24 @@ def test_object_with_two_root_bodies_is_rejected(tmp_path):
                             "<body name='b'><geom name='b/col0' size='.02'/></body>")
     with pytest.raises(AssetError, match="exactly one root body"):
         build_scene(SceneConfig(object_xml=path))
+
+
+def test_a_closed_hand_squeezes_a_thin_part_with_over_20_newtons_per_finger(scene):
+    # GRASPING needs > 20 N on one finger; a 2.6 mm eyeglasses temple leaves the fingers 1.3 mm open each, where the
+    # hand, commanded closed, must still press that hard (aiming 12 mm past closed it gave 19.9 N). Fully open stays
+    # fully open.
+    model = scene.model
+    data = mujoco.MjData(model)
+    gripper = model.actuator("gripper").id
+    cases = ((0.0013, panda.FINGER_CLOSED), (0.0, panda.FINGER_CLOSED), (panda.FINGER_OPEN, panda.FINGER_OPEN))
+    for opening, ctrl in cases:
+        data.qpos[scene.finger_qpos_adr] = opening
+        data.qvel[:] = 0.0
+        data.ctrl[gripper] = ctrl
+        data.act[model.actuator_actadr[gripper]] = ctrl
+        mujoco.mj_forward(model, data)
+        per_finger = -0.5 * data.actuator_force[gripper]
+        if ctrl == panda.FINGER_CLOSED:
+            assert per_finger > 20.0
+        else:
+            assert abs(per_finger) < 1.0
