@@ -100,6 +100,12 @@ def tcp_quat(approach: jnp.ndarray, closing: jnp.ndarray) -> jnp.ndarray:
     return matrix_to_quat(jnp.stack([x, closing, approach], axis=-1))
 
 
+def tcp_pose(centre: jnp.ndarray, approach: jnp.ndarray, closing: jnp.ndarray):
+    """TCP position of a grasp whose pads' middle lands at `centre`, and its two orientations (closing along
+    `closing`, or the hand turned half a turn about its axis)."""
+    return centre - PAD_CENTRE * approach, tcp_quat(approach, closing), tcp_quat(approach, -closing)
+
+
 def grasp_candidates(object_points, object_normals, object_valid, part_points, part_normals, part_valid, key,
                      num_seeds: int = NUM_SEEDS, top_down_weight=TOP_DOWN_WEIGHT,
                      lever_weight=0.0) -> dict[str, jnp.ndarray]:

@@ -315,16 +315,16 @@ def _plan_grasp(o: OracleState, data, geo: PartGeometry, kinematics, q):
     approach, closing = grasps["approach"][top], grasps["closing"][top]
     # Both closing directions of each grasp (the hand turned half a turn about its axis), the one nearer the
     # current hand orientation first.
-    quat_a = candidates.tcp_quat(approach, closing)
-    quat_b = candidates.tcp_quat(approach, -closing)
+    position, quat_a, quat_b = jax.vmap(candidates.tcp_pose)(grasps["centre"][top], approach, closing)
     turn_a = jnp.linalg.norm(quat_error(quat_a, o.cmd_quat[None]), axis=-1)
     turn_b = jnp.linalg.norm(quat_error(quat_b, o.cmd_quat[None]), axis=-1)
     near = (turn_a <= turn_b)[:, None]
     quats = jnp.stack([jnp.where(near, quat_a, quat_b), jnp.where(near, quat_b, quat_a)], 1).reshape(-1, 4)
     approach = jnp.repeat(approach, 2, axis=0)
-    positions = jnp.repeat(grasps["centre"][top], 2, axis=0) - candidates.PAD_CENTRE * approach
+    positions = jnp.repeat(position, 2, axis=0)
     openings = jnp.repeat(grasps["opening"][top], 2)
-    reached, joints = jax.vmap(_reachable, in_axes=(None, None, 0, 0, 0))(kinematics, q, positions, quats, approach)
+    reached, joints = jax.vmap(approach_reachable, in_axes=(None, None, 0, 0, 0))(kinematics, q, positions, quats,
+                                                                                  approach)
     reachable = jnp.repeat(jnp.isfinite(top_score), 2) & reached
     # Grasps after which the arm can carry out the rest of the chain (lookahead.py) come first.
     chain = {name: getattr(o, name) for name in ("kind", "direction", "put_down", "part", "on_table_turn",
@@ -368,7 +368,7 @@ def _plan_touch(o: OracleState, data, geo: PartGeometry, kinematics, q):
     axes = touch_axis[order]
     quats = jax.vmap(candidates.touch_quat)(axes)
     positions = touch_point[order] - (predicates.FINGERTIP_OFFSET - candidates.TOUCH_DEPTH) * axes
-    reached, _ = jax.vmap(_reachable, in_axes=(None, None, 0, 0, 0))(kinematics, q, positions, quats, axes)
+    reached, _ = jax.vmap(approach_reachable, in_axes=(None, None, 0, 0, 0))(kinematics, q, positions, quats, axes)
     reachable = jnp.isfinite(touch_score[order]) & reached
     closed = jnp.full(positions.shape[0], panda.FINGER_CLOSED)
     return _take_candidate(o, key, o.kind[index] == TOUCH, positions, quats, axes, closed, reachable, reachable)
@@ -410,7 +410,7 @@ PLAN_CANDIDATES = 8
 """Best-ranked grasps whose reach (with both closing directions) and outlook are checked with the IK."""
 
 
-def _reachable(kinematics, q, position, quat, axis):
+def approach_reachable(kinematics, q, position, quat, axis):
     """The IK reaches the via point, the pre-pose and the pose itself, each from the previous solution; and the
     joint angles at the pose."""
     pre = position - candidates.PREGRASP_DISTANCE * axis

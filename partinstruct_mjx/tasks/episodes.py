@@ -29,7 +29,7 @@ from partinstruct_mjx.tasks import slot_rules
 from partinstruct_mjx.tasks.instructions import skill_instruction, task_instruction
 from partinstruct_mjx.tasks.skills import SkillStep
 from partinstruct_mjx.tasks.task_types import task_type
-from partinstruct_mjx.tasks.vocabulary import SPATIAL_PARTS
+from partinstruct_mjx.tasks.vocabulary import DIRECTIONS, HORIZONTAL, SPATIAL_PARTS, UNIT_DISTANCE
 
 SPLITS = ("train", "test1", "test2", "test3", "test4", "test5")
 SEEN_TYPES = tuple(range(1, 11))
@@ -284,18 +284,32 @@ def _draw(objects: list[dict], assets_root: Path, split: str, type_id: int, held
         options = [(parts, dirs) for parts, dirs in slot_rules.feasible_assignments(type_id, category, views, (x, y))
                    if _split_admits(split, slot_rules.combination(type_id, parts) in held_out)]
         drawn = _draw_graspable(options, type_id, rng, lambda part: slot_rules.graspable(object_dir, yaw, part))
-        if drawn is not None:
-            parts, choices = drawn
-            directions = {slot: words[rng.integers(len(words))] for slot, words in choices.items()}
+        if drawn is None:
+            continue
+        parts, choices = drawn
+        directions = {slot: words[rng.integers(len(words))] for slot, words in choices.items()}
+        chain = tuple(task_type(type_id).build_chain(parts, directions))
+        if grasps_reachable(object_dir, yaw, (x, y), chain):
             obj_class = category.replace("_", " ")
-            chain = tuple(task_type(type_id).build_chain(parts, directions))
             return Episode(obj_class, entry["id"], ep_id, type_id, split, chain,
                            task_instruction(type_id, obj_class, parts, directions, episode_seed),
                            tuple(skill_instruction(step, obj_class) for step in chain),
                            (0.0, 0.0, math.sin(yaw / 2), math.cos(yaw / 2), x, y, 0.0),
                            float(entry["scale"]), episode_seed)
     raise TaskError(f"no valid {split} episode of type {type_id} for {category} after {MAX_ATTEMPTS} object and "
-                    f"pose draws (seed {episode_seed}); its parts do not fit the slot rules")
+                    f"pose draws (seed {episode_seed}); its parts do not fit the slot rules or the arm's reach")
+
+
+def grasps_reachable(object_dir: str, yaw: float, position: tuple[float, float], chain) -> bool:
+    """The arm reaches a grasp on each part the chain grasps, where the object is by then: moved by the chain's
+    horizontal carries and pushes before the grasp (slot_rules.grasp_reachable)."""
+    x, y = position
+    for step in chain:
+        if step.name == "grasp_obj" and not slot_rules.grasp_reachable(object_dir, yaw, step.part, (x, y)):
+            return False
+        if step.name == "move_gripper" and step.direction in HORIZONTAL:
+            x, y = x + UNIT_DISTANCE * DIRECTIONS[step.direction][0], y + UNIT_DISTANCE * DIRECTIONS[step.direction][1]
+    return True
 
 
 def _draw_graspable(options: list, type_id: int, rng: np.random.Generator, graspable) -> tuple | None:

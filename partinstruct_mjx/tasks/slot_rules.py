@@ -46,9 +46,11 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
+from partinstruct_mjx.control import jax_ik
 from partinstruct_mjx.errors import AssetError
-from partinstruct_mjx.oracle import candidates, pushing
+from partinstruct_mjx.oracle import candidates, machine, pushing
 from partinstruct_mjx.sim.mujoco_backend import MujocoBackend
+from partinstruct_mjx.sim.panda import HOME_ARM_QPOS
 from partinstruct_mjx.sim.scene import TABLE_HEIGHT, SceneConfig, build_scene
 from partinstruct_mjx.tasks.instructions import instruction_slots
 from partinstruct_mjx.tasks.part_geometry import spatial_masks
@@ -193,43 +195,61 @@ def part_views(geometry: ObjectGeometry, yaw: float) -> dict[str, PartView]:
 def graspable(object_dir: str, yaw: float, part: str) -> bool:
     """The gripper can close on `part` of the object resting on the table turned by `yaw`: the oracle's grasp
     search (oracle/candidates.py: something between the pads, pads and hand free of the object, above the table,
-    antipodal landing faces) finds grasps on it (MIN_GRASP_KEYS). The arm's reach is not part of it.
+    antipodal landing faces) finds grasps on it (MIN_GRASP_KEYS). The arm's reach is `grasp_reachable`'s.
 
     Deterministic (fixed keys). A semantic part is judged once per object, at yaw 0 (its shape does not turn with
     the yaw); a spatial part is a region of the turned object, so it is judged at `yaw` rounded to YAW_STEP (each
     judgement is cached: the search costs about 0.2 s on a CPU core).
     """
-    if part not in SPATIAL_PARTS:
-        return _semantic_graspable(object_dir, part)
-    return _spatial_graspable(object_dir, round(yaw / YAW_STEP) % round(2 * math.pi / YAW_STEP), part)
+    _, grasps = _best_grasps(object_dir, _yaw_steps(yaw, part), part)
+    return int(np.isfinite(grasps["score"][:, 0]).sum()) >= MIN_GRASP_KEYS
+
+
+def grasp_reachable(object_dir: str, yaw: float, part: str, position: tuple[float, float]) -> bool:
+    """The arm, from its home pose, reaches one of the grasps the oracle tries first on `part` of the object resting
+    on the table turned by `yaw` with its origin at `position` (x, y): the best machine.PLAN_CANDIDATES of each of
+    GRASP_CHECK_KEYS searches, either closing direction, its via point, pre-pose and pose (machine.approach_reachable).
+    A laptop's front edge at the far end of the object range, or a knife pushed 12 cm away from the robot before its
+    grasp (types 14 and 16), had none: the oracle found no grasp to try and the episode could not be done."""
+    searched_yaw, grasps = _best_grasps(object_dir, _yaw_steps(yaw, part), part)
+    turn = yaw_matrix(yaw - searched_yaw)
+    shift = np.array([position[0], position[1], 0.0])
+    flat = {name: value.reshape(-1, *value.shape[2:]) for name, value in grasps.items()}
+    return bool(_any_reachable(_arm(), (flat["centre"] @ turn.T + shift).astype(np.float32),
+                               (flat["approach"] @ turn.T).astype(np.float32),
+                               (flat["closing"] @ turn.T).astype(np.float32), np.isfinite(flat["score"])))
+
+
+def _yaw_steps(yaw: float, part: str) -> int | None:
+    """The cache key of a part's grasp search: None for a semantic part (searched at yaw 0), else `yaw` in YAW_STEPs."""
+    return None if part not in SPATIAL_PARTS else round(yaw / YAW_STEP) % round(2 * math.pi / YAW_STEP)
 
 
 @functools.lru_cache(maxsize=None)
-def _spatial_graspable(object_dir: str, yaw_steps: int, part: str) -> bool:
+def _best_grasps(object_dir: str, yaw_steps: int | None, part: str) -> tuple[float, dict[str, np.ndarray]]:
+    """The yaw the part was searched at, and per GRASP_CHECK_KEYS key the machine.PLAN_CANDIDATES best grasps on it
+    (candidates.grasp_candidates' fields centre, approach, closing, score: (keys, PLAN_CANDIDATES, ...)), in the
+    world frame of the object resting on the table with its origin above (0, 0)."""
     geometry = load_object_geometry(object_dir)
-    rotation = yaw_matrix(yaw_steps * YAW_STEP)
-    mask = np.asarray(_spatial_masks((rotation @ geometry.object_points).T))[SPATIAL_PARTS.index(part)]
-    return _grasps_found(geometry, rotation, geometry.object_points, geometry.object_normals, mask)
-
-
-@functools.lru_cache(maxsize=None)
-def _semantic_graspable(object_dir: str, part: str) -> bool:
-    geometry = load_object_geometry(object_dir)
-    index = geometry.part_names.index(part)
-    points = geometry.part_points[index]
-    return _grasps_found(geometry, np.eye(3), points, geometry.part_normals[index], np.ones(points.shape[1], bool))
-
-
-def _grasps_found(geometry: ObjectGeometry, rotation: np.ndarray, points, normals, valid) -> bool:
+    if yaw_steps is None:
+        yaw = 0.0
+        index = geometry.part_names.index(part)
+        points, normals = geometry.part_points[index], geometry.part_normals[index]
+        valid = np.ones(points.shape[1], bool)
+    else:
+        yaw = yaw_steps * YAW_STEP
+        points, normals = geometry.object_points, geometry.object_normals
+        valid = np.asarray(_spatial_masks((yaw_matrix(yaw) @ points).T))[SPATIAL_PARTS.index(part)]
+    rotation = yaw_matrix(yaw)
     lift = np.array([0.0, 0.0, TABLE_HEIGHT - (rotation @ geometry.object_points)[2].min()])[:, None]
 
     def world(p, n):
         return (rotation @ p + lift).T.astype(np.float32), (rotation @ n).T.astype(np.float32)
 
     whole = world(geometry.object_points[:, ::2], geometry.object_normals[:, ::2])
-    found = _grasps_per_key(*_padded(*whole, np.ones(whole[0].shape[0], bool)),
-                            *_padded(*world(points, normals), np.asarray(valid, bool)))
-    return int(found.sum()) >= MIN_GRASP_KEYS
+    grasps = _best_grasps_per_key(*_padded(*whole, np.ones(whole[0].shape[0], bool)),
+                                  *_padded(*world(points, normals), np.asarray(valid, bool)))
+    return yaw, {name: np.asarray(value) for name, value in grasps.items()}
 
 
 def _padded(points, normals, valid):
@@ -242,13 +262,31 @@ def _padded(points, normals, valid):
 
 
 @jax.jit
-def _grasps_per_key(object_points, object_normals, object_valid, part_points, part_normals, part_valid):
-    def any_grasp(key):
+def _best_grasps_per_key(object_points, object_normals, object_valid, part_points, part_normals, part_valid):
+    def best(key):
         grasps = candidates.grasp_candidates(object_points, object_normals, object_valid, part_points, part_normals,
                                              part_valid, key)
-        return jnp.isfinite(grasps["score"]).any()
+        score, top = jax.lax.top_k(grasps["score"], machine.PLAN_CANDIDATES)
+        return {"score": score, **{name: grasps[name][top] for name in ("centre", "approach", "closing")}}
 
-    return jax.vmap(any_grasp)(jax.random.split(jax.random.PRNGKey(0), GRASP_CHECK_KEYS))
+    return jax.vmap(best)(jax.random.split(jax.random.PRNGKey(0), GRASP_CHECK_KEYS))
+
+
+@functools.lru_cache(maxsize=1)
+def _arm() -> jax_ik.ArmKinematics:
+    return jax_ik.ArmKinematics.from_scene(build_scene())
+
+
+@jax.jit
+def _any_reachable(kinematics, centres, approaches, closings, valid):
+    """Whether the arm reaches, from home, any valid grasp (rows of centre, approach, closing) either way round."""
+    def reached(centre, approach, closing):
+        position, quat_a, quat_b = candidates.tcp_pose(centre, approach, closing)
+        home = jnp.asarray(HOME_ARM_QPOS, jnp.float32)
+        return (machine.approach_reachable(kinematics, home, position, quat_a, approach)[0]
+                | machine.approach_reachable(kinematics, home, position, quat_b, approach)[0])
+
+    return (jax.vmap(reached)(centres, approaches, closings) & valid).any()
 
 
 def _view(local: np.ndarray, rotation: np.ndarray, object_world: np.ndarray) -> PartView:
