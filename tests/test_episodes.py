@@ -14,7 +14,7 @@ from partinstruct_mjx.assets.catalog import load_catalog
 from partinstruct_mjx.errors import TaskError
 from partinstruct_mjx.paths import assets_root
 from partinstruct_mjx.tasks import slot_rules
-from partinstruct_mjx.tasks.episodes import (SPLITS, generate_episodes, grasps_reachable, read_metadata, summary,
+from partinstruct_mjx.tasks.episodes import (SPLITS, generate_episodes, chain_reachable, read_metadata, summary,
                                              validate_episode, validate_episodes, write_metadata)
 from partinstruct_mjx.tasks.episodes_cli import add_episodes_parser
 from partinstruct_mjx.tasks.instructions import (TASK_TEMPLATES, instruction_slots, part_phrase, skill_instruction,
@@ -335,16 +335,22 @@ def test_graspable_and_pushable_follow_the_gripper_and_the_physics():
     assert not bottle["neck"].pushable and bottle["body"].pushable == {"left", "right", "front", "back"}
 
 
-def test_episodes_only_grasp_where_the_arm_reaches():
+def test_episodes_only_grasp_and_touch_where_the_arm_reaches():
     # A laptop turned 82 degrees at the far side of the object range (episode 387 of docs/oracle.md's first 880):
     # the oracle found no grasp on its front edge the arm reaches, only on the edge towards the robot.
     laptop = str(assets_root() / "objects" / "laptop" / "laptop_005")
     assert not slot_rules.grasp_reachable(laptop, 1.4375, "front", (-0.0075, 0.1276))
     assert slot_rules.grasp_reachable(laptop, 1.4375, "back", (-0.0075, 0.1276))
+    # A stapler turned -94 degrees (episode 505 of the same draw): its base body, under the lid, has no touch pose the
+    # oracle's search would use; the lid has.
+    stapler = str(assets_root() / "objects" / "stapler" / "stapler_003")
+    touch = [slot_rules.touch_reachable(stapler, -1.6345, part, (0.0759, 0.1199), np.zeros(3))
+             for part in ("base body", "lid")]
+    assert touch == [False, True]
     # A bottle's neck grasped after pushes away from the robot (12 cm each): reachable after two, not after three.
     bottle = str(assets_root() / "objects" / "bottle" / "bottle_002")
     push, grasp = SkillStep("move_gripper", None, "front", touching=True), SkillStep("grasp_obj", "neck")
-    assert [grasps_reachable(bottle, 0.0, (0.0, 0.05), (push,) * n + (grasp,)) for n in range(4)] == [
+    assert [chain_reachable(bottle, 0.0, (0.0, 0.05), (push,) * n + (grasp,)) for n in range(4)] == [
         True, True, True, False]
 
 

@@ -366,12 +366,17 @@ def _plan_touch(o: OracleState, data, geo: PartGeometry, kinematics, q):
                                                                        part_valid, o.push_side[index])
     order = jnp.argsort(-touch_score)
     axes = touch_axis[order]
-    quats = jax.vmap(candidates.touch_quat)(axes)
-    positions = touch_point[order] - (predicates.FINGERTIP_OFFSET - candidates.TOUCH_DEPTH) * axes
+    positions, quats = touch_poses(touch_point[order], axes)
     reached, _ = jax.vmap(approach_reachable, in_axes=(None, None, 0, 0, 0))(kinematics, q, positions, quats, axes)
     reachable = jnp.isfinite(touch_score[order]) & reached
     closed = jnp.full(positions.shape[0], panda.FINGER_CLOSED)
     return _take_candidate(o, key, o.kind[index] == TOUCH, positions, quats, axes, closed, reachable, reachable)
+
+
+def touch_poses(points, axes):
+    """TCP positions and orientations (N, 3), (N, 4) that press the fingertip candidates.TOUCH_DEPTH into the
+    surface at `points` along the TCP z axes `axes` (candidates.touch_candidates)."""
+    return points - (predicates.FINGERTIP_OFFSET - candidates.TOUCH_DEPTH) * axes, jax.vmap(candidates.touch_quat)(axes)
 
 
 def _object_cloud(data, geo: PartGeometry):

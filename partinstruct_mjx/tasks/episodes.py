@@ -29,7 +29,8 @@ from partinstruct_mjx.tasks import slot_rules
 from partinstruct_mjx.tasks.instructions import skill_instruction, task_instruction
 from partinstruct_mjx.tasks.skills import SkillStep
 from partinstruct_mjx.tasks.task_types import task_type
-from partinstruct_mjx.tasks.vocabulary import DIRECTIONS, HORIZONTAL, SPATIAL_PARTS, UNIT_DISTANCE
+from partinstruct_mjx.tasks.vocabulary import (DIRECTIONS, HORIZONTAL, OPPOSITE, SPATIAL_PARTS, UNIT_DISTANCE,
+                                                direction_vector)
 
 SPLITS = ("train", "test1", "test2", "test3", "test4", "test5")
 SEEN_TYPES = tuple(range(1, 11))
@@ -289,7 +290,7 @@ def _draw(objects: list[dict], assets_root: Path, split: str, type_id: int, held
         parts, choices = drawn
         directions = {slot: words[rng.integers(len(words))] for slot, words in choices.items()}
         chain = tuple(task_type(type_id).build_chain(parts, directions))
-        if grasps_reachable(object_dir, yaw, (x, y), chain):
+        if chain_reachable(object_dir, yaw, (x, y), chain):
             obj_class = category.replace("_", " ")
             return Episode(obj_class, entry["id"], ep_id, type_id, split, chain,
                            task_instruction(type_id, obj_class, parts, directions, episode_seed),
@@ -300,13 +301,19 @@ def _draw(objects: list[dict], assets_root: Path, split: str, type_id: int, held
                     f"pose draws (seed {episode_seed}); its parts do not fit the slot rules or the arm's reach")
 
 
-def grasps_reachable(object_dir: str, yaw: float, position: tuple[float, float], chain) -> bool:
-    """The arm reaches a grasp on each part the chain grasps, where the object is by then: moved by the chain's
-    horizontal carries and pushes before the grasp (slot_rules.grasp_reachable)."""
+def chain_reachable(object_dir: str, yaw: float, position: tuple[float, float], chain) -> bool:
+    """The arm reaches a grasp on each part the chain grasps and a touch pose on each part it touches, where the
+    object is by then: moved by the chain's horizontal carries and pushes before (slot_rules.grasp_reachable,
+    slot_rules.touch_reachable)."""
     x, y = position
-    for step in chain:
+    for step, following in zip(chain, chain[1:] + (None,)):
         if step.name == "grasp_obj" and not slot_rules.grasp_reachable(object_dir, yaw, step.part, (x, y)):
             return False
+        if step.name == "touch_obj":
+            pushed = following is not None and following.name == "move_gripper" and following.touching
+            push_side = direction_vector(OPPOSITE[following.direction]) if pushed else np.zeros(3)
+            if not slot_rules.touch_reachable(object_dir, yaw, step.part, (x, y), push_side):
+                return False
         if step.name == "move_gripper" and step.direction in HORIZONTAL:
             x, y = x + UNIT_DISTANCE * DIRECTIONS[step.direction][0], y + UNIT_DISTANCE * DIRECTIONS[step.direction][1]
     return True

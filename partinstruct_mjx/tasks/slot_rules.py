@@ -230,26 +230,46 @@ def _best_grasps(object_dir: str, yaw_steps: int | None, part: str) -> tuple[flo
     """The yaw the part was searched at, and per GRASP_CHECK_KEYS key the machine.PLAN_CANDIDATES best grasps on it
     (candidates.grasp_candidates' fields centre, approach, closing, score: (keys, PLAN_CANDIDATES, ...)), in the
     world frame of the object resting on the table with its origin above (0, 0)."""
+    yaw = 0.0 if yaw_steps is None else yaw_steps * YAW_STEP
+    whole, part = _resting_clouds(object_dir, yaw, part)
+    grasps = _best_grasps_per_key(*_padded(*whole), *_padded(*part))
+    return yaw, {name: np.asarray(value) for name, value in grasps.items()}
+
+
+def touch_reachable(object_dir: str, yaw: float, part: str, position: tuple[float, float],
+                    push_side: np.ndarray) -> bool:
+    """The arm, from its home pose, reaches one of the oracle's touch poses on `part` of the object resting on the
+    table turned by `yaw` with its origin at `position` (x, y): candidates.touch_candidates with `push_side` (the side
+    a following push comes from, zero without one), machine.touch_poses, machine.approach_reachable. The part's
+    box being exposed (the cheap rule) is not enough: two staplers' bodies under their lids, turned, had no touch
+    pose the search would use, and the oracle's touch failed (docs/oracle.md)."""
+    (points, normals, valid), (part_points, part_normals, part_valid) = _resting_clouds(object_dir, yaw, part)
+    shift = np.array([position[0], position[1], 0.0], np.float32)
+    padded, padded_part = _padded(points + shift, normals, valid), _padded(part_points + shift, part_normals, part_valid)
+    return bool(_any_touch_reachable(_arm(), padded[0], padded[2], padded_part[0], padded_part[2],
+                                     np.asarray(push_side, np.float32)))
+
+
+def _resting_clouds(object_dir: str, yaw: float, part: str):
+    """(points, normals, valid) of the whole object (every second point, as the oracle's planners search it) and of
+    `part`, in the world frame of the object resting on the table turned by `yaw` with its origin above (0, 0)."""
     geometry = load_object_geometry(object_dir)
-    if yaw_steps is None:
-        yaw = 0.0
+    rotation = yaw_matrix(yaw)
+    if part in SPATIAL_PARTS:
+        points, normals = geometry.object_points, geometry.object_normals
+        valid = np.asarray(_spatial_masks((rotation @ points).T))[SPATIAL_PARTS.index(part)]
+    else:
         index = geometry.part_names.index(part)
         points, normals = geometry.part_points[index], geometry.part_normals[index]
         valid = np.ones(points.shape[1], bool)
-    else:
-        yaw = yaw_steps * YAW_STEP
-        points, normals = geometry.object_points, geometry.object_normals
-        valid = np.asarray(_spatial_masks((yaw_matrix(yaw) @ points).T))[SPATIAL_PARTS.index(part)]
-    rotation = yaw_matrix(yaw)
     lift = np.array([0.0, 0.0, TABLE_HEIGHT - (rotation @ geometry.object_points)[2].min()])[:, None]
 
-    def world(p, n):
-        return (rotation @ p + lift).T.astype(np.float32), (rotation @ n).T.astype(np.float32)
+    def world(p, n, v):
+        return (rotation @ p + lift).T.astype(np.float32), (rotation @ n).T.astype(np.float32), np.asarray(v, bool)
 
-    whole = world(geometry.object_points[:, ::2], geometry.object_normals[:, ::2])
-    grasps = _best_grasps_per_key(*_padded(*whole, np.ones(whole[0].shape[0], bool)),
-                                  *_padded(*world(points, normals), np.asarray(valid, bool)))
-    return yaw, {name: np.asarray(value) for name, value in grasps.items()}
+    whole = world(geometry.object_points[:, ::2], geometry.object_normals[:, ::2],
+                  np.ones(geometry.object_points[:, ::2].shape[1], bool))
+    return whole, world(points, normals, valid)
 
 
 def _padded(points, normals, valid):
@@ -270,6 +290,17 @@ def _best_grasps_per_key(object_points, object_normals, object_valid, part_point
         return {"score": score, **{name: grasps[name][top] for name in ("centre", "approach", "closing")}}
 
     return jax.vmap(best)(jax.random.split(jax.random.PRNGKey(0), GRASP_CHECK_KEYS))
+
+
+@jax.jit
+def _any_touch_reachable(kinematics, object_points, object_valid, part_points, part_valid, push_side):
+    """Whether the arm reaches, from home, any usable touch pose on the part (machine._plan_touch's candidates)."""
+    points, axes, score = candidates.touch_candidates(object_points, object_valid, part_points, part_valid, push_side)
+    positions, quats = machine.touch_poses(points, axes)
+    home = jnp.asarray(HOME_ARM_QPOS, jnp.float32)
+    reached, _ = jax.vmap(machine.approach_reachable, in_axes=(None, None, 0, 0, 0))(kinematics, home, positions,
+                                                                                     quats, axes)
+    return (reached & jnp.isfinite(score)).any()
 
 
 @functools.lru_cache(maxsize=1)
