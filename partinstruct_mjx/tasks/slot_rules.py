@@ -16,6 +16,9 @@ episode's yaw:
   can close on (a section under 7.4 cm, pads and hand free of the object, pads above the table, landing faces
   facing the pads); a 2 mm scissors blade lying flat, or a pot's wall under its lid, are not. `feasible_assignments`
   applies the cheap rules; the episode generator asks `graspable` only for the parts of the assignment it draws;
+* reach (asked by the generator of the drawn chain, tasks/episodes.py `chain_reachable`): the arm, from its home
+  pose, reaches one of the oracle's first grasps on a grasped part (`grasp_reachable`) and one of its touch poses on
+  a touched part (`touch_reachable`), where the chain's pushes and carries before have moved the object;
 * touch: exposed;
 * rotate: centroid >= 2 cm from the object origin (FACING is measured from it);
   in the air any direction but the one the part faces now; on the table only horizontal ones and only for parts
