@@ -592,6 +592,24 @@ def test_touching_again_after_a_push_aims_over_the_rear_faces_top():
     np.testing.assert_allclose(aim, [0.0, 0.01, 0.09 + machine.RIM_ABOVE], atol=1e-6)
 
 
+def test_grasp_reach_is_checked_in_rank_order_chunk_by_chunk():
+    # 3 chunks of candidate poses: the first out of reach (1.5 m behind the robot's base), the second and third
+    # within it. The next chunk is checked only while fewer poses are reachable than the attempt needs.
+    kinematics = jax_ik.ArmKinematics.from_scene(build_scene())
+    size = 2 * machine.PLAN_CANDIDATES
+    far, near = jnp.array([-0.9, 0.0, 0.3]), jnp.array([0.3, 0.0, 0.25])
+    positions = jnp.concatenate([jnp.tile(far, (size, 1)), jnp.tile(near, (2 * size, 1))])
+    down = jnp.array([0.0, 0.0, -1.0])
+    quats = jnp.tile(candidates.tcp_quat(down, jnp.array([0.0, 1.0, 0.0])), (3 * size, 1))
+    axes, usable = jnp.tile(down, (3 * size, 1)), jnp.ones(3 * size, bool)
+    q = jnp.asarray(HOME_ARM_QPOS, jnp.float32)
+    check = jax.jit(partial(machine._reach_in_rank_order, kinematics, q, positions, quats, axes, usable))
+    one = np.asarray(check(1)[0])
+    assert not one[:size].any() and one[size:2 * size].all() and not one[2 * size:].any()
+    more = np.asarray(check(size + 1)[0])
+    assert not more[:size].any() and more[size:].all()
+
+
 def test_the_lazy_outlook_picks_the_candidate_checking_every_one_picks():
     # The outlook (a costly IK look-ahead) is run in rank order only until the candidate to take is known.
     rng = np.random.default_rng(0)

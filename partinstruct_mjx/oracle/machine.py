@@ -311,7 +311,7 @@ def _plan_grasp(o: OracleState, data, geo: PartGeometry, kinematics, q):
                                           part_valid, sub, top_down_weight=jnp.where(
                                               table_turn, TABLE_TURN_TOP_DOWN_WEIGHT, candidates.TOP_DOWN_WEIGHT),
                                           lever_weight=jnp.where(air_turn, AIR_TURN_LEVER_WEIGHT, 0.0))
-    top_score, top = jax.lax.top_k(grasps["score"], PLAN_CANDIDATES)
+    top_score, top = jax.lax.top_k(grasps["score"], PLAN_CANDIDATES * PLAN_CHUNKS)
     approach, closing = grasps["approach"][top], grasps["closing"][top]
     # Both closing directions of each grasp (the hand turned half a turn about its axis), the one nearer the
     # current hand orientation first.
@@ -323,9 +323,8 @@ def _plan_grasp(o: OracleState, data, geo: PartGeometry, kinematics, q):
     approach = jnp.repeat(approach, 2, axis=0)
     positions = jnp.repeat(position, 2, axis=0)
     openings = jnp.repeat(grasps["opening"][top], 2)
-    reached, joints = jax.vmap(approach_reachable, in_axes=(None, None, 0, 0, 0))(kinematics, q, positions, quats,
-                                                                                  approach)
-    reachable = jnp.repeat(jnp.isfinite(top_score), 2) & reached
+    reachable, joints = _reach_in_rank_order(kinematics, q, positions, quats, approach,
+                                             jnp.repeat(jnp.isfinite(top_score), 2), o.attempt + o.skip + 1)
     # Grasps after which the arm can carry out the rest of the chain (lookahead.py) come first.
     chain = {name: getattr(o, name) for name in ("kind", "direction", "put_down", "part", "on_table_turn",
                                                  "num_skills")}
@@ -412,7 +411,32 @@ REACH_CONFIG = jax_ik.IKConfig(iterations=40)
 TABLE_TURN_TOP_DOWN_WEIGHT = 2.0
 """candidates.TOP_DOWN_WEIGHT for grasps before a turn on the table."""
 PLAN_CANDIDATES = 8
-"""Best-ranked grasps whose reach (with both closing directions) and outlook are checked with the IK."""
+PLAN_CHUNKS = 3
+"""Best-ranked grasps whose reach (with both closing directions) and outlook are checked with the IK, PLAN_CANDIDATES
+at a time in rank order, the next ones only while fewer are reachable than the attempt needs, up to PLAN_CHUNKS
+times: a laptop's front edge, to be held for a turn in the air (episode 4000216), had no reachable grasp among the
+first 8 and the grasp failed at once; among the first 24 it had."""
+
+
+def _reach_in_rank_order(kinematics, q, positions, quats, axes, usable, wanted):
+    """(reachable (N,), joints (N, 7)) of the candidate poses, checked with `approach_reachable` a chunk of
+    2 * PLAN_CANDIDATES poses at a time in rank order until `wanted` usable ones are reachable (the rest: False)."""
+    size = 2 * PLAN_CANDIDATES
+
+    def body(carry):
+        i, reachable, joints = carry
+        chunk = [jax.lax.dynamic_slice_in_dim(x, i * size, size) for x in (positions, quats, axes, usable)]
+        reached, solved = jax.vmap(approach_reachable, in_axes=(None, None, 0, 0, 0))(kinematics, q, *chunk[:3])
+        return (i + 1, jax.lax.dynamic_update_slice_in_dim(reachable, reached & chunk[3], i * size, 0),
+                jax.lax.dynamic_update_slice_in_dim(joints, solved, i * size, 0))
+
+    def more(carry):
+        i, reachable, _ = carry
+        return (i * size < positions.shape[0]) & (reachable.sum() < wanted)
+
+    start = (0, jnp.zeros(positions.shape[0], bool), jnp.zeros((positions.shape[0], q.shape[0]), q.dtype))
+    _, reachable, joints = jax.lax.while_loop(more, body, start)
+    return reachable, joints
 
 
 def approach_reachable(kinematics, q, position, quat, axis):
