@@ -342,7 +342,10 @@ def _plan_grasp(o: OracleState, data, geo: PartGeometry, kinematics, q):
 
 def _first_preferred(reachable, check, wanted):
     """(N,) `reachable` & `check(i)` (a costly test) for the candidates in rank order until `wanted` of them pass
-    (later ones are left False): what `_take_candidate` needs to pick the same candidate as with every test run."""
+    (later ones are left False): what `_take_candidate` needs to pick the same candidate as with every test run.
+    Stops after the last reachable candidate (`_reach_in_rank_order` leaves the chunks it did not check False)."""
+    end = jnp.max(jnp.where(reachable, jnp.arange(reachable.shape[0]) + 1, 0))
+
     def body(carry):
         i, passed, preferred = carry
         ok = jax.lax.cond(reachable[i], check, lambda _: jnp.asarray(False), i)
@@ -350,7 +353,7 @@ def _first_preferred(reachable, check, wanted):
 
     def more(carry):
         i, passed, _ = carry
-        return (i < reachable.shape[0]) & (passed < wanted)
+        return (i < end) & (passed < wanted)
 
     return jax.lax.while_loop(more, body, (0, 0, jnp.zeros_like(reachable)))[2]
 

@@ -300,10 +300,7 @@ def _any_touch_reachable(kinematics, object_points, object_valid, part_points, p
     """Whether the arm reaches, from home, any usable touch pose on the part (machine._plan_touch's candidates)."""
     points, axes, score = candidates.touch_candidates(object_points, object_valid, part_points, part_valid, push_side)
     positions, quats = machine.touch_poses(points, axes)
-    home = jnp.asarray(HOME_ARM_QPOS, jnp.float32)
-    reached, _ = jax.vmap(machine.approach_reachable, in_axes=(None, None, 0, 0, 0))(kinematics, home, positions,
-                                                                                     quats, axes)
-    return (reached & jnp.isfinite(score)).any()
+    return _any_reached_from_home(kinematics, positions, quats, axes, jnp.isfinite(score))
 
 
 @functools.lru_cache(maxsize=1)
@@ -314,13 +311,17 @@ def _arm() -> jax_ik.ArmKinematics:
 @jax.jit
 def _any_reachable(kinematics, centres, approaches, closings, valid):
     """Whether the arm reaches, from home, any valid grasp (rows of centre, approach, closing) either way round."""
-    def reached(centre, approach, closing):
-        position, quat_a, quat_b = candidates.tcp_pose(centre, approach, closing)
-        home = jnp.asarray(HOME_ARM_QPOS, jnp.float32)
-        return (machine.approach_reachable(kinematics, home, position, quat_a, approach)[0]
-                | machine.approach_reachable(kinematics, home, position, quat_b, approach)[0])
+    positions, quats_a, quats_b = jax.vmap(candidates.tcp_pose)(centres, approaches, closings)
+    return _any_reached_from_home(kinematics, jnp.tile(positions, (2, 1)), jnp.concatenate([quats_a, quats_b]),
+                                  jnp.tile(approaches, (2, 1)), jnp.tile(valid, 2))
 
-    return (jax.vmap(reached)(centres, approaches, closings) & valid).any()
+
+def _any_reached_from_home(kinematics, positions, quats, axes, usable):
+    """Whether `machine.approach_reachable` holds from the arm's home pose for any usable pose (rows)."""
+    home = jnp.asarray(HOME_ARM_QPOS, jnp.float32)
+    reached, _ = jax.vmap(machine.approach_reachable, in_axes=(None, None, 0, 0, 0))(kinematics, home, positions,
+                                                                                     quats, axes)
+    return (reached & usable).any()
 
 
 def _view(local: np.ndarray, rotation: np.ndarray, object_world: np.ndarray) -> PartView:
