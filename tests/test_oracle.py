@@ -455,11 +455,13 @@ def test_a_grasp_counts_once_the_fingers_stop_a_touch_as_soon_as_it_holds():
 
 def test_backtracking_restores_a_scene_exactly_and_leaves_the_others(episodes):
     """A retried scene goes back to its saved physics, task and machine state (with a new random key) and, given the
-    same actions again, repeats its steps exactly; the scene beside it goes on as if nothing happened."""
+    same actions again, repeats its steps exactly; the scene beside it goes on as if nothing happened. A segment that
+    spent its tries sends the scene back to the previous segment's next try."""
     batch = [e for e in episodes if e.obj_class == "mug"][:2]
     with _env(batch[0], 2) as env:
         state, policy = _started(env, batch)
-        search = backtrack.Backtracker(env, state, policy.state, tries=2)
+        initial = state.data.qpos.copy()
+        search = backtrack.Backtracker(env, state, policy.state, tries=3)
         start = hold_action(np.asarray(state.obs["tcp_pose"]))
         actions = [start + [0.0, 0.0, -0.01 * k, 0, 0, 0, 0] for k in range(6)]
         first = []
@@ -478,7 +480,22 @@ def test_backtracking_restores_a_scene_exactly_and_leaves_the_others(episodes):
         for action, qpos in zip(actions, first):
             state = env.step(state, action)
             np.testing.assert_array_equal(state.data.qpos[0], qpos[0])
-        # The second failure has no try left.
+        # Scene 0 starts a second segment, which fails with all its tries.
+        search.save(failed, state, oracle, np.full(2, len(actions)))
+        for segment_try in (1, 2):
+            state = env.step(state, actions[0])
+            rows, state, oracle = search.retry(failed, state, oracle)
+            assert rows.tolist() == [True, False] and search.saved_steps[0] == len(actions)
+            np.testing.assert_array_equal(state.data.qpos[0], first[-1][0])
+            assert search.chosen[0, :2].tolist() == [1, segment_try]
+        state = env.step(state, actions[0])
+        rows, state, oracle = search.retry(failed, state, oracle)
+        # Back to the first segment's third try, the second segment to start afresh.
+        assert rows.tolist() == [True, False] and search.chosen[0, :2].tolist() == [2, 0]
+        assert int(state.info["steps"][0]) == 0 and search.saved_steps[0] == 0
+        np.testing.assert_array_equal(state.data.qpos[0], initial[0])
+        assert np.asarray(oracle.skip).tolist() == [2 * backtrack.TRY_SKIP, 0]
+        # The first segment has no try left.
         rows, _, _ = search.retry(failed, state, oracle)
         assert not rows.any()
 

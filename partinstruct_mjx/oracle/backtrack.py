@@ -4,9 +4,11 @@ A segment is a grasp or touch skill and the skills after it up to the next grasp
 does with one contact. When a segment fails (the oracle fails a skill, or the episode ends without success), the
 scene goes back to the state saved when the segment started (physics, environment and machine state) and the oracle
 plans again with other random draws (another grasp or touch sample, whose best candidates it passes over: they are
-most often the one that failed), up to `tries` times in all. The demonstration keeps only the steps of the try that
-stands, so it is one real trajectory from the episode's start: its actions, replayed from the initial state,
-reproduce it. A try that finds no candidate at all fails like any other.
+most often the one that failed), up to `tries` times in all. A segment that has spent its tries sends the scene
+back to the previous segment's next try (at most RETREATS times an episode): a push can leave the object where no
+grasp after it holds. The demonstration keeps only the steps of the tries that stand, so it is one real trajectory
+from the episode's start: its actions, replayed from the initial state, reproduce it. A try that finds no candidate
+at all fails like any other.
 """
 
 from __future__ import annotations
@@ -26,53 +28,83 @@ SEGMENT_TRIES = 6
 TRY_SKIP = 2
 """Try k of a segment passes over the k * TRY_SKIP best reachable candidates of its fresh sample (each grasp comes
 with both closing directions), so it does not take the grasp that failed again."""
+RETREATS = 2
+"""Times an episode may go back to its previous segment, to that segment's next try, once a later segment has
+spent all its tries: what the earlier contact left (where a push ended, the arm's joints after it) can make every
+try of the next one fail. The later segment then starts again with all its tries."""
 
 
 class Backtracker:
-    """Per scene: the state saved at the start of its current segment, and the tries spent on it."""
+    """Per scene: the state saved at the start of each segment of its episode so far, and the try that stands for
+    each."""
 
     def __init__(self, env: PartInstructEnv, state: State, oracle: machine.OracleState, tries: int):
         self.env, self.tries = env, tries
         batch = env.batch_size
-        self._physics = env.backend.snapshot()
-        self._env_state = state.replace(data=None)
-        self._oracle = oracle
-        self.saved_steps = np.zeros(batch, np.int32)
-        """Steps of each scene's demonstration before its current segment."""
-        self.spent = np.zeros(batch, np.int32)
+        self._saved = [self._captured(state, oracle)]
+        """Per segment number: (physics, env state, machine state) of the batch, valid in the rows that saved it."""
+        self._saved_steps = np.zeros((batch, progress.MAX_SKILLS), np.int32)
         self.segment = np.zeros(batch, np.int32)
         self.chosen = np.zeros((batch, progress.MAX_SKILLS), np.int32)
         """(B, S) the try (0 = the first) that stands for each segment so far (`OraclePolicy`'s look-ahead makes
         the same choices in the evaluated env)."""
+        self.retreats = np.zeros(batch, np.int32)
+
+    @property
+    def saved_steps(self) -> np.ndarray:
+        """(B,) steps of each scene's demonstration before its current segment."""
+        return self._saved_steps[np.arange(len(self.segment)), self.segment]
 
     def save(self, rows: np.ndarray, state: State, oracle: machine.OracleState, steps: np.ndarray) -> None:
         """Scenes where `rows` holds start a segment now (`steps` into their demonstration)."""
-        if not rows.any():
-            return
-        self._physics = select_rows(rows, self.env.backend.snapshot(), self._physics)
-        self._env_state = select_rows(rows, state.replace(data=None), self._env_state)
-        self._oracle = select_rows(rows, oracle, self._oracle)
-        self.saved_steps = np.where(rows, steps, self.saved_steps)
-        self.spent = np.where(rows, 0, self.spent)
-        self.segment = np.where(rows, self.segment + 1, self.segment)
+        if rows.any():
+            self._begin(rows, np.where(rows, self.segment + 1, self.segment), state, oracle, steps)
 
     def start(self, rows: np.ndarray, state: State, oracle: machine.OracleState) -> None:
         """Scenes where `rows` holds start a new episode (its first segment) now."""
-        self.save(rows, state, oracle, np.zeros_like(self.saved_steps))
-        self.segment = np.where(rows, 0, self.segment)
-        self.chosen[rows] = 0
+        if rows.any():
+            self.retreats = np.where(rows, 0, self.retreats)
+            self.chosen[rows] = 0
+            self._begin(rows, np.where(rows, 0, self.segment), state, oracle, np.zeros_like(self.segment))
 
     def retry(self, failed: np.ndarray, state: State, oracle: machine.OracleState):
-        """Send the `failed` scenes that have tries left back to their segment's start. Returns the rows sent back,
-        the new env state and machine state (the machine's random key folded with the try's number)."""
-        rows = failed & (self.spent + 1 < self.tries)
+        """Send the `failed` scenes that have tries left back to their segment's start, or, with its tries spent, to
+        the previous segment's start (at most RETREATS times an episode). Returns the rows sent back, the new env
+        state and machine state (the machine's random key folded with the try's number)."""
+        scenes, segment = np.arange(len(failed)), self.segment
+        again = failed & (self.chosen[scenes, segment] + 1 < self.tries)
+        back = (failed & ~again & (segment > 0) & (self.retreats < RETREATS)
+                & (self.chosen[scenes, np.maximum(segment - 1, 0)] + 1 < self.tries))
+        rows = again | back
         if not rows.any():
             return rows, state, oracle
-        self.spent = np.where(rows, self.spent + 1, self.spent)
-        self.chosen[rows, self.segment[rows]] = self.spent[rows]
-        data = self.env.backend.restore(self._physics, rows)
-        state = select_rows(rows, self._env_state, state.replace(data=None)).replace(data=data)
-        return rows, state, select_rows(rows, with_try(self._oracle, self.spent), oracle)
+        self.chosen[back, segment[back]] = 0
+        self.segment = segment = np.where(back, segment - 1, segment)
+        self.retreats = self.retreats + back
+        self.chosen[rows, segment[rows]] += 1
+        physics, env_state, saved_oracle = self._saved[0]
+        for number in range(1, len(self._saved)):
+            physics, env_state, saved_oracle = select_rows(segment == number, self._saved[number],
+                                                           (physics, env_state, saved_oracle))
+        data = self.env.backend.restore(physics, rows)
+        state = select_rows(rows, env_state, state.replace(data=None)).replace(data=data)
+        tries = self.chosen[scenes, segment]
+        return rows, state, select_rows(rows, with_try(saved_oracle, tries), oracle)
+
+    def _begin(self, rows, segment, state: State, oracle: machine.OracleState, steps) -> None:
+        """Save the state of the `rows` scenes as the start of their segment number `segment`, with its first try."""
+        self.segment = segment
+        captured = self._captured(state, oracle)
+        for number in np.unique(segment[rows]):
+            here = rows & (segment == number)
+            while len(self._saved) <= number:
+                self._saved.append(captured)
+            self._saved[number] = select_rows(here, captured, self._saved[number])
+        self._saved_steps[rows, segment[rows]] = steps[rows]
+        self.chosen[rows, segment[rows]] = 0
+
+    def _captured(self, state: State, oracle: machine.OracleState):
+        return self.env.backend.snapshot(), state.replace(data=None), oracle
 
 
 def with_try(oracle: machine.OracleState, tries: np.ndarray) -> machine.OracleState:
