@@ -160,15 +160,22 @@ class PartInstructEnv:
             task, info = select_rows(rows, (task, info), (old.task, old.info))
         return _assemble(data, task, info, _outputs(data.for_jit(), task, info))
 
-    def step(self, state: State, action) -> State:
-        """Apply one (B, 7) Euler or (B, 8) quaternion action to every scene for one 20 Hz step."""
+    def step(self, state: State, action, active=None) -> State:
+        """Apply one (B, 7) Euler or (B, 8) quaternion action to every scene for one 20 Hz step.
+
+        active: (B,) bool, the scenes whose outcome the caller still reads (default all). The `mujoco` backend does
+        not simulate the others (their physics stays as it was; their returned state is not meaningful); `mjx` steps
+        the whole batch as one program either way."""
         # A host action stays on the host until the IK's dispatch copies it (an eager conversion costs as much).
         action = jnp.asarray(action, jnp.float32) if isinstance(action, jax.Array) else np.asarray(action, np.float32)
         if action.shape != (self.batch_size, self.config.action_size):
             raise TaskError(f"action must have shape ({self.batch_size}, {self.config.action_size}) for "
                             f"rotation='{self.config.rotation}', got {tuple(action.shape)}")
         ctrl = joint_targets(self.kinematics, self.config.ik, state.info["joint_targets"], action)
-        data = self.backend.step(np.asarray(ctrl) if self.config.backend == "mujoco" else ctrl)
+        if self.config.backend == "mujoco":
+            data = self.backend.step(np.asarray(ctrl), None if active is None else np.asarray(active, bool))
+        else:
+            data = self.backend.step(ctrl)
         changed, info, outputs = _advance(state.task, state.info, state.done, data.for_jit(), self.geometry, ctrl,
                                           self.config.skill_mode)
         return _assemble(data, state.task.replace(**changed), {**state.info, **info}, outputs)

@@ -63,6 +63,24 @@ def test_batch_equals_one_by_one(scene):
         np.testing.assert_array_equal(alone.contact_force[0], together.contact_force[i])
 
 
+def test_only_the_chosen_rows_are_stepped(scene):
+    """`step(ctrl, rows)` steps the chosen environments exactly as a full step would and leaves the others as they
+    were (the evaluator and the oracle's rollouts stop simulating scenes whose episode has ended)."""
+    batch, steps = 4, 10
+    xy, quat = _placements(batch, seed=1)
+    controls = moving_controls(batch, steps, seed=2)
+    rows = np.array([True, False, True, False])
+    with MujocoBackend(scene, batch, num_threads=2) as full, MujocoBackend(scene, batch, num_threads=2) as some:
+        start = full.reset(xy, quat).qpos.copy()
+        some.reset(xy, quat)
+        for ctrl in controls:
+            everyone = full.step(ctrl)
+            chosen = some.step(ctrl, rows)
+        np.testing.assert_array_equal(chosen.qpos[rows], everyone.qpos[rows])
+        np.testing.assert_array_equal(chosen.qpos[~rows], start[~rows])
+        assert some.datas[1].time == some.datas[3].time < some.datas[0].time
+
+
 def test_state_shapes_and_poses_agree_with_qpos(scene):
     with MujocoBackend(scene, 3) as backend:
         state = backend.reset()

@@ -168,7 +168,7 @@ def _run_batch(env, batch: list[Episode], policy: Policy, planner: Planner | Non
     horizon = np.asarray(state.info["step_limit"])
     if config.max_steps is not None:
         horizon = np.minimum(horizon, config.max_steps)
-    ended = np.zeros(size, bool)
+    ended = np.arange(size) >= real  # the rows that pad the batch are not simulated
     success, completion = np.zeros(size, bool), np.zeros(size)
     steps, skill_at = np.zeros(size, int), np.zeros(size, int)
     films = {b: _Film(batch[b], b, state, skills.index(state)[b]) for b in range(real) if batch[b].ep_id in filmed}
@@ -181,7 +181,7 @@ def _run_batch(env, batch: list[Episode], policy: Policy, planner: Planner | Non
             if len(instructions) != size or not all(isinstance(i, str) for i in instructions):
                 raise EvalError(f"the planner must return {size} strings (one per scene), got {instructions!r}")
         action = policy.act(env, state, instructions, jax.random.fold_in(act_key, t))
-        state = env.step(state, action)
+        state = env.step(state, action, ~ended)
         skills.update(state)
         now = ~ended & (np.asarray(state.done) | (t + 1 >= horizon))
         index = skills.index(state)

@@ -215,7 +215,7 @@ def run_oracle(env: PartInstructEnv, episodes: list, key: jax.Array, record: boo
             frames[number] = frame
             for b in np.flatnonzero(active):
                 steps[b].append(number)
-        state = env.step(state, action)
+        state = env.step(state, action, active)
         length += active
         simulated += active
         oracle = policy.state

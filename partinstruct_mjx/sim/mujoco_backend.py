@@ -85,8 +85,9 @@ class MujocoBackend:
             self._run(self._step_chunk, chosen)
         return self._run(self._extract_chunk)
 
-    def step(self, ctrl: np.ndarray) -> SceneState:
-        """Apply actuator targets (B, 8) = 7 arm joint angles + finger opening for one control step.
+    def step(self, ctrl: np.ndarray, rows: np.ndarray | None = None) -> SceneState:
+        """Apply actuator targets (B, 8) = 7 arm joint angles + finger opening for one control step; with a (B,)
+        mask `rows`, only to those environments (the others are not stepped and keep their state).
 
         The returned SceneState's arrays are the backend's reusable buffers: the next `step`, `reset` or
         `set_physics_state` overwrites them, so a caller that keeps an earlier state copies what it keeps (JAX calls
@@ -96,7 +97,7 @@ class MujocoBackend:
         if ctrl.shape != (self.batch_size, panda.NUM_CTRL):
             raise SceneError(f"ctrl must have shape ({self.batch_size}, {panda.NUM_CTRL}), got {ctrl.shape}")
         np.copyto(self._ctrl, ctrl)
-        return self._run(self._step_and_extract_chunk)
+        return self._run(self._step_and_extract_chunk, None if rows is None else np.flatnonzero(rows))
 
     def get_physics_state(self) -> np.ndarray:
         """(B, nstate) MuJoCo integration state (time, qpos, qvel, act, warm start, ctrl ...) for exact replay."""
