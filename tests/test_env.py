@@ -59,6 +59,19 @@ def test_pose_actions_move_the_tcp_through_ik(env):
     assert (np.asarray(state.info["steps"]) == 20).all()
 
 
+def test_inactive_scenes_are_not_simulated(env):
+    """`step(state, action, active)`: on the mujoco backend a scene outside `active` keeps its physics as it was."""
+    state = env.reset(jax.random.PRNGKey(0), [_episode(), _episode()])
+    action = _hold(state)
+    action[:, 2] -= 0.05
+    start = np.asarray(state.obs["tcp_pose"])[:, 4:]
+    for _ in range(5):
+        state = env.step(state, action, np.array([True, False]))
+    moved = np.asarray(state.obs["tcp_pose"])[:, 4:] - start
+    assert moved[0, 2] < -0.005
+    np.testing.assert_array_equal(moved[1], 0.0)
+
+
 def test_quaternion_actions_match_euler_actions():
     episodes = [_episode(), _episode()]
     results = []
