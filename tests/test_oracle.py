@@ -620,7 +620,8 @@ def test_grasp_reach_is_checked_in_rank_order_chunk_by_chunk():
     quats = jnp.tile(candidates.tcp_quat(down, jnp.array([0.0, 1.0, 0.0])), (3 * size, 1))
     axes, usable = jnp.tile(down, (3 * size, 1)), jnp.ones(3 * size, bool)
     q = jnp.asarray(HOME_ARM_QPOS, jnp.float32)
-    check = jax.jit(partial(machine._reach_in_rank_order, kinematics, q, positions, quats, axes, usable))
+    check = jax.jit(partial(machine._reach_in_rank_order, kinematics, q, positions, quats, axes, usable,
+                            jnp.asarray(TABLE_HEIGHT)))
     one = np.asarray(check(1)[0])
     assert not one[:size].any() and one[size:2 * size].all() and not one[2 * size:].any()
     more = np.asarray(check(size + 1)[0])

@@ -324,7 +324,8 @@ def _plan_grasp(o: OracleState, data, geo: PartGeometry, kinematics, q):
     positions = jnp.repeat(position, 2, axis=0)
     openings = jnp.repeat(grasps["opening"][top], 2)
     reachable, joints = _reach_in_rank_order(kinematics, q, positions, quats, approach,
-                                             jnp.repeat(jnp.isfinite(top_score), 2), o.attempt + o.skip + 1)
+                                             jnp.repeat(jnp.isfinite(top_score), 2), _top(object_points, object_valid),
+                                             o.attempt + o.skip + 1)
     # Grasps after which the arm can carry out the rest of the chain (lookahead.py) come first.
     chain = {name: getattr(o, name) for name in ("kind", "direction", "put_down", "part", "on_table_turn",
                                                  "num_skills")}
@@ -369,7 +370,8 @@ def _plan_touch(o: OracleState, data, geo: PartGeometry, kinematics, q):
     order = jnp.argsort(-touch_score)
     axes = touch_axis[order]
     positions, quats = touch_poses(touch_point[order], axes)
-    reached, _ = jax.vmap(approach_reachable, in_axes=(None, None, 0, 0, 0))(kinematics, q, positions, quats, axes)
+    reached, _ = jax.vmap(servo_reachable, in_axes=(None, None, 0, 0, 0, None))(kinematics, q, positions, quats, axes,
+                                                                             _top(object_points, object_valid))
     reachable = jnp.isfinite(touch_score[order]) & reached
     closed = jnp.full(positions.shape[0], panda.FINGER_CLOSED)
     return _take_candidate(o, key, o.kind[index] == TOUCH, positions, quats, axes, closed, reachable, reachable)
@@ -379,6 +381,11 @@ def touch_poses(points, axes):
     """TCP positions and orientations (N, 3), (N, 4) that press the fingertip candidates.TOUCH_DEPTH into the
     surface at `points` along the TCP z axes `axes` (candidates.touch_candidates)."""
     return points - (predicates.FINGERTIP_OFFSET - candidates.TOUCH_DEPTH) * axes, jax.vmap(candidates.touch_quat)(axes)
+
+
+def _top(points, valid):
+    """Height of the highest valid point."""
+    return jnp.where(valid, points[:, 2], -jnp.inf).max()
 
 
 def _object_cloud(data, geo: PartGeometry):
@@ -411,6 +418,10 @@ def _take_candidate(o: OracleState, key, kind_matches, positions, quats, axes, o
 
 
 REACH_CONFIG = jax_ik.IKConfig(iterations=40)
+SERVO_STEPS = 48
+SERVO_CONFIG = jax_ik.IKConfig(iterations=5)
+"""`servo_reachable`'s steps of the command towards the via point, and its IK iterations per step (the env's IK
+converges on a servo step in about 3)."""
 TABLE_TURN_TOP_DOWN_WEIGHT = 2.0
 """candidates.TOP_DOWN_WEIGHT for grasps before a turn on the table."""
 PLAN_CANDIDATES = 8
@@ -421,15 +432,16 @@ times: a laptop's front edge, to be held for a turn in the air (episode 4000216)
 first 8 and the grasp failed at once; among the first 24 it had."""
 
 
-def _reach_in_rank_order(kinematics, q, positions, quats, axes, usable, wanted):
-    """(reachable (N,), joints (N, 7)) of the candidate poses, checked with `approach_reachable` a chunk of
+def _reach_in_rank_order(kinematics, q, positions, quats, axes, usable, object_top, wanted):
+    """(reachable (N,), joints (N, 7)) of the candidate poses, checked with `servo_reachable` a chunk of
     2 * PLAN_CANDIDATES poses at a time in rank order until `wanted` usable ones are reachable (the rest: False)."""
     size = 2 * PLAN_CANDIDATES
 
     def body(carry):
         i, reachable, joints = carry
         chunk = [jax.lax.dynamic_slice_in_dim(x, i * size, size) for x in (positions, quats, axes, usable)]
-        reached, solved = jax.vmap(approach_reachable, in_axes=(None, None, 0, 0, 0))(kinematics, q, *chunk[:3])
+        reached, solved = jax.vmap(servo_reachable, in_axes=(None, None, 0, 0, 0, None))(kinematics, q, *chunk[:3],
+                                                                                        object_top)
         return (i + 1, jax.lax.dynamic_update_slice_in_dim(reachable, reached & chunk[3], i * size, 0),
                 jax.lax.dynamic_update_slice_in_dim(joints, solved, i * size, 0))
 
@@ -448,6 +460,25 @@ def approach_reachable(kinematics, q, position, quat, axis):
     pre = position - candidates.PREGRASP_DISTANCE * axis
     return lookahead.reach_all(kinematics, q, jnp.stack([pre + jnp.array([0.0, 0.0, VIA_HEIGHT]), pre, position]),
                                quat, REACH_CONFIG)
+
+
+def servo_reachable(kinematics, q, position, quat, axis, object_top):
+    """`approach_reachable` as the servo gets there: SERVO_STEPS steps of the command from the hand's pose at `q`
+    towards the via point (over the object first, `over_to`) at FREE_SPEED and TURN_SPEED, each solved from the
+    step before with SERVO_CONFIG's iterations as the env's IK follows the command; then the pre-pose and the pose.
+    Only those two must be reached (the machine moves on from a via point it does not reach).
+    A solve straight to the via point can end on another branch of the arm's redundancy than the servo's path, which
+    may pin joints on their limits on the way (kettle_007, test5 episode 5000076)."""
+    pre = position - candidates.PREGRASP_DISTANCE * axis
+    via = pre + jnp.array([0.0, 0.0, VIA_HEIGHT])
+
+    def step(carry, _):
+        cmd_pos, cmd_quat, joints = carry
+        cmd_pos, cmd_quat = _toward(cmd_pos, cmd_quat, over_to(via, cmd_pos, object_top), quat, FREE_SPEED, TURN_SPEED)
+        return (cmd_pos, cmd_quat, jax_ik._solve_one(kinematics, SERVO_CONFIG, joints, cmd_pos, cmd_quat)[0]), None
+
+    (_, _, joints), _ = jax.lax.scan(step, (*jax_ik.forward_kinematics(kinematics, q), q), None, SERVO_STEPS)
+    return lookahead.reach_all(kinematics, joints, jnp.stack([pre, position]), quat, REACH_CONFIG)
 
 
 # --- acting -------------------------------------------------------------------------------------------------
@@ -601,7 +632,7 @@ def _act_one(o: OracleState, data, geo: PartGeometry, rows, facts, env, follow_e
     focus_part = jnp.maximum(jnp.where(push, o.part[jnp.maximum(index - 1, 0)], o.part[index]), 0)
     focus_points, focus_valid = predicates.part_cloud(data, geo, env_masks, focus_part)
 
-    object_top = jnp.where(whole_valid, whole_points[:, 2], -jnp.inf).max()
+    object_top = _top(whole_points, whole_valid)
 
     # Grasp / touch: 0 wait for a plan, 1 via point, 2 pre-pose, 3 approach, 4 close, 5 judge, 6 back off.
     pre = o.target_pos - candidates.PREGRASP_DISTANCE * o.approach
