@@ -628,6 +628,40 @@ def test_grasp_reach_is_checked_in_rank_order_chunk_by_chunk():
     assert not more[:size].any() and more[size:].all()
 
 
+def _servo_end(kinematics, q, position, quat, axis, object_top):
+    """Where the TCP ends after the machine's way to a grasp (via point over the object for 60 steps, pre-pose for
+    10, the pose for 20), the command stepped by `machine._toward` and the env's IK following it step by step."""
+    pre = position - candidates.PREGRASP_DISTANCE * axis
+    via = pre + jnp.array([0.0, 0.0, machine.VIA_HEIGHT])
+
+    def step(carry, t):
+        cmd_pos, cmd_quat, joints = carry
+        goal = jnp.where(t < 60, machine.over_to(via, cmd_pos, object_top), jnp.where(t < 70, pre, position))
+        cmd_pos, cmd_quat = machine._toward(cmd_pos, cmd_quat, goal, quat, machine.FREE_SPEED, machine.TURN_SPEED)
+        joints = jax_ik.solve_ik(kinematics, joints[None], cmd_pos[None], cmd_quat[None])[0][0]
+        return (cmd_pos, cmd_quat, joints), None
+
+    (_, _, joints), _ = jax.lax.scan(step, (*jax_ik.forward_kinematics(kinematics, q), q), jnp.arange(90))
+    return jax_ik.forward_kinematics(kinematics, joints)[0]
+
+
+def test_the_reach_check_follows_the_servos_way_to_a_grasp():
+    # From home, grasps at a 15 cm tall object's height. The first, from the side, is reached by one IK solve straight
+    # to its via point, but the servo's way there (the command stepped towards it, the IK following) pins the wrist
+    # on its limits 16 cm short; the servo reaches the second, from above. servo_reachable judges both as the servo
+    # fares.
+    kinematics = jax_ik.ArmKinematics.from_scene(build_scene())
+    home, top = jnp.asarray(HOME_ARM_QPOS, jnp.float32), jnp.asarray(0.15)
+    for position, axis, closing, servo_gets_there in (([-0.1, -0.3, 0.2], [-1.0, 0.0, 0.0], [0.0, 1.0, 0.0], False),
+                                                      ([0.1, 0.0, 0.2], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0], True)):
+        position, axis = jnp.asarray(position), jnp.asarray(axis)
+        quat = candidates.tcp_quat(axis, jnp.asarray(closing))
+        end = _servo_end(kinematics, home, position, quat, axis, top)
+        assert (float(jnp.linalg.norm(end - position)) < 0.005) == servo_gets_there
+        assert servo_gets_there or bool(machine.approach_reachable(kinematics, home, position, quat, axis)[0])
+        assert bool(machine.servo_reachable(kinematics, home, position, quat, axis, top)[0]) == servo_gets_there
+
+
 def test_the_lazy_outlook_picks_the_candidate_checking_every_one_picks():
     # The outlook (a costly IK look-ahead) is run in rank order only until the candidate to take is known.
     rng = np.random.default_rng(0)
