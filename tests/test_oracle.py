@@ -631,8 +631,7 @@ def test_grasp_reach_is_checked_in_rank_order_chunk_by_chunk():
 def _servo_end(kinematics, q, position, quat, axis, object_top):
     """Where the TCP ends after the machine's way to a grasp (via point over the object for 60 steps, pre-pose for
     10, the pose for 20), the command stepped by `machine._toward` and the env's IK following it step by step."""
-    pre = position - candidates.PREGRASP_DISTANCE * axis
-    via = pre + jnp.array([0.0, 0.0, machine.VIA_HEIGHT])
+    pre, via = machine.approach_waypoints(position, axis)
 
     def step(carry, t):
         cmd_pos, cmd_quat, joints = carry

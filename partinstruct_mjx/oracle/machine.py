@@ -457,9 +457,15 @@ def _reach_in_rank_order(kinematics, q, positions, quats, axes, usable, object_t
 def approach_reachable(kinematics, q, position, quat, axis):
     """The IK reaches the via point, the pre-pose and the pose itself, each from the previous solution; and the
     joint angles at the pose."""
+    pre, via = approach_waypoints(position, axis)
+    return lookahead.reach_all(kinematics, q, jnp.stack([via, pre, position]), quat, REACH_CONFIG)
+
+
+def approach_waypoints(position, axis):
+    """The pre-pose PREGRASP_DISTANCE back along the approach `axis` from a grasp's or touch's TCP `position`, and
+    the via point VIA_HEIGHT above it."""
     pre = position - candidates.PREGRASP_DISTANCE * axis
-    return lookahead.reach_all(kinematics, q, jnp.stack([pre + jnp.array([0.0, 0.0, VIA_HEIGHT]), pre, position]),
-                               quat, REACH_CONFIG)
+    return pre, pre + jnp.array([0.0, 0.0, VIA_HEIGHT])
 
 
 def servo_reachable(kinematics, q, position, quat, axis, object_top):
@@ -469,8 +475,7 @@ def servo_reachable(kinematics, q, position, quat, axis, object_top):
     Only those two must be reached (the machine moves on from a via point it does not reach).
     A solve straight to the via point can end on another branch of the arm's redundancy than the servo's path, which
     may pin joints on their limits on the way (kettle_007, test5 episode 5000076)."""
-    pre = position - candidates.PREGRASP_DISTANCE * axis
-    via = pre + jnp.array([0.0, 0.0, VIA_HEIGHT])
+    pre, via = approach_waypoints(position, axis)
 
     def step(carry, _):
         cmd_pos, cmd_quat, joints = carry
@@ -635,8 +640,7 @@ def _act_one(o: OracleState, data, geo: PartGeometry, rows, facts, env, follow_e
     object_top = _top(whole_points, whole_valid)
 
     # Grasp / touch: 0 wait for a plan, 1 via point, 2 pre-pose, 3 approach, 4 close, 5 judge, 6 back off.
-    pre = o.target_pos - candidates.PREGRASP_DISTANCE * o.approach
-    via = pre + VIA_HEIGHT * up
+    pre, via = approach_waypoints(o.target_pos, o.approach)
     approach_goals = jnp.stack([o.cmd_pos, over_to(via, tcp, object_top), pre, o.target_pos, o.target_pos,
                                 o.target_pos, pre])
     is_touch = kind == TOUCH
