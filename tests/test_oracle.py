@@ -13,7 +13,7 @@ from partinstruct_mjx.assets.catalog import load_catalog
 from partinstruct_mjx.control import jax_ik
 from partinstruct_mjx.control.rotations import quat_rotate
 from partinstruct_mjx.env import EnvConfig, PartInstructEnv, hold_action
-from partinstruct_mjx.oracle import backtrack, candidates, machine, pushing, rotation
+from partinstruct_mjx.oracle import backtrack, candidates, machine, pushing, rollout, rotation
 from partinstruct_mjx.oracle.rollout import OraclePolicy, run_oracle
 from partinstruct_mjx.paths import assets_root
 from partinstruct_mjx.sim import panda
@@ -332,6 +332,21 @@ def test_a_scene_planned_alone_gets_the_plan_it_gets_in_a_batch(episodes):
     for name in ("target_pos", "target_quat", "approach", "stage", "attempt"):
         np.testing.assert_allclose(np.asarray(getattr(alone, name))[0], np.asarray(getattr(batched, name))[0],
                                    atol=1e-6, err_msg=name)
+
+
+def test_a_scene_planned_alone_shares_one_compiled_planner_across_batch_sizes(episodes):
+    """Planning one scene of a batch compiles the planner for a batch of one, not once per batch size (an
+    evaluation's batches come in several sizes, and the planner takes seconds to trace); only that scene is planned."""
+    episode = next(e for e in episodes if e.obj_class == "mug" and e.task_type == 3)
+    compiled = []
+    for batch in (2, 3):
+        with _env(episode, batch) as env:
+            state, policy = _started(env, [episode] * batch)
+            planned = rollout._plan_scene(policy.state, state.data.for_jit(), env.geometry, env.kinematics,
+                                          state.info["joint_targets"], batch - 1)
+        assert np.asarray(planned.needs_plan).tolist() == [True] * (batch - 1) + [False]
+        compiled.append(rollout._plan._cache_size())
+    assert compiled[0] >= 1 and compiled[1] == compiled[0]
 
 
 def test_push_point_presses_low_on_the_face_opposite_the_push_near_the_middle(episodes):
