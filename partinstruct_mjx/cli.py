@@ -92,6 +92,9 @@ def main(argv: list[str] | None = None) -> int:
     bench.add_argument("--workers", type=int, nargs="+", default=None, metavar="N",
                        help="demos and eval suites: objects simulated at once (threads) to measure, side by side "
                             "(default: the default of `partinstruct demos` and `eval`, 2 on the mujoco backend)")
+    bench.add_argument("--processes", type=int, nargs="+", default=None, metavar="N",
+                       help="eval suite: worker processes (`partinstruct eval --processes`) to measure, side by side "
+                            "with the --workers threads (default: none)")
     bench.add_argument("--output", type=Path, default=DEFAULT_BENCH_OUTPUT,
                        help=f"markdown file to update (default {DEFAULT_BENCH_OUTPUT}); '-' prints only")
     bench.set_defaults(func=_bench)
@@ -313,10 +316,13 @@ def _bench_eval(args, on_table) -> str:
     cache = enable_compilation_cache()
     device = f"{jax.default_backend()} ({jax.devices()[0].device_kind})"
     results = []
-    for batch, tries, workers in itertools.product(args.batch_sizes or [16], args.oracle_tries or [SEGMENT_TRIES],
-                                                   args.workers or [default_workers(args.backend)]):
-        config = evaluation.bench_config(args.episodes or 8, batch, args.backend, args.threads, tries, workers)
-        row = f"batch {batch:>3}, oracle tries {tries}, workers {workers}"
+    threads = args.workers or ([] if args.processes else [default_workers(args.backend)])
+    parallel = [(workers, 1) for workers in threads] + [(None, processes) for processes in args.processes or []]
+    for batch, tries, (workers, processes) in itertools.product(args.batch_sizes or [16],
+                                                                args.oracle_tries or [SEGMENT_TRIES], parallel):
+        config = evaluation.bench_config(args.episodes or 8, batch, args.backend, args.threads, tries, workers,
+                                         processes)
+        row = f"batch {batch:>3}, oracle tries {tries}, {evaluation.parallelism(config)}"
         result = evaluation.measure(config, args.repeats, on_run=lambda index, run: print(
             f"{row}, {'cold' if index == 0 else 'warm'} run: {run.episodes} episodes in {run.wall_s:.1f} s "
             f"({run.episodes / run.wall_s * 60:,.1f} episodes/min), {run.successes} successful", flush=True))

@@ -157,8 +157,8 @@ def test_rerun_resumes_and_other_settings_are_refused(metadata, run_dir, capsys)
 
 
 def test_outcomes_do_not_depend_on_the_workers(tmp_path):
-    """Two mugs' episodes rolled out by one worker and by two (each object in its own thread, each thread with its
-    own fork of the oracle and planner): the same records."""
+    """Two mugs' episodes rolled out by one worker, by two (each object in its own thread, each thread with its
+    own fork of the oracle and planner) and by two worker processes (each loading its own): the same records."""
     episodes = select_episodes("test1", 40, seed=0, categories=["mug"])
     per_mug = {}
     for episode in episodes:
@@ -167,15 +167,16 @@ def test_outcomes_do_not_depend_on_the_workers(tmp_path):
     assert len(chosen) == 4
     write_metadata(chosen, tmp_path / "two_mugs.json")
     outcomes = []
-    for workers in (1, 2):
-        out = tmp_path / f"workers{workers}"
+    for option, number in (("--workers", 1), ("--workers", 2), ("--processes", 2)):
+        out = tmp_path / f"{option[2:]}{number}"
         assert main(["eval", "--policy", "oracle", "--metadata", str(tmp_path / "two_mugs.json"), "--splits", "test1",
                      "--batch-size", "2", "--max-steps", "30", "--oracle-tries", "2", "--planner", "oracle",
-                     "--workers", str(workers), "--out", str(out), "--quiet"]) == 0
+                     option, str(number), "--out", str(out), "--quiet"]) == 0
         results = json.loads((out / "results.json").read_text())
-        assert results["run"]["workers"] == workers
+        assert results["run"]["workers"] == number
+        assert results["run"]["processes"] == (number if option == "--processes" else 1)
         outcomes.append(results["episodes"])
-    assert outcomes[0] == outcomes[1]
+    assert outcomes[0] == outcomes[1] == outcomes[2]
 
 
 def test_a_custom_policy_gets_the_skill_instructions(metadata, tmp_path):
@@ -202,6 +203,8 @@ def test_a_custom_policy_gets_the_skill_instructions(metadata, tmp_path):
     assert results["run"]["workers"] == 1, "a policy without fork() runs in one thread"
     with pytest.raises(EvalError, match=r"--workers 2 needs a policy and planner with fork\(\).*Hold has none"):
         evaluate(replace(config, workers=2), tmp_path / "hold2", policy=policy, progress=False)
+    with pytest.raises(EvalError, match=r"--processes 2: each process loads the policy.*handed a policy object"):
+        evaluate(replace(config, processes=2), tmp_path / "hold2", policy=policy, progress=False)
     assert not (tmp_path / "hold2").exists()
 
 
@@ -235,6 +238,8 @@ def test_oracle_planner_starts_at_the_first_skill(metadata):
     (["--episodes-per-split", "0"], "episodes_per_split must be >= 1"),
     (["--oracle-tries", "0"], "oracle_tries must be >= 1"),
     (["--workers", "0"], "workers must be >= 1"),
+    (["--processes", "0"], "processes must be >= 1"),
+    (["--workers", "2", "--processes", "2"], "workers (2) and processes (2): choose one"),
 ])
 def test_bad_arguments_are_named(tmp_path, capsys, argv, message):
     args = ["eval", "--policy", "oracle", "--out", str(tmp_path / "out"), "--quiet", *argv]
@@ -283,4 +288,7 @@ def test_eval_bench_rates_and_projection():
     assert result.compile_s == pytest.approx(250.0)
     assert result.full_evaluation_min == pytest.approx(1800 / 50 + 250 / 60)
     text = evaluation.markdown([result], "cpu (cpu)", "off")
-    assert "| 16 | 2 | 3 | 40 | 30 (75%) | 50.0 | 40.0 - 60.0 | 50.0 | 250.0 | 8.0 | 40.2 |" in text
+    assert "| 16 | 2 | 3 threads | 40 | 30 (75%) | 50.0 | 40.0 - 60.0 | 50.0 | 250.0 | 8.0 | 40.2 |" in text
+    in_processes = evaluation.bench_config(8, 16, processes=16)
+    assert (in_processes.workers, in_processes.processes) == (None, 16)
+    assert evaluation.parallelism(in_processes) == "16 processes"

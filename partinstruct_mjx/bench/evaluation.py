@@ -82,11 +82,19 @@ def measure(config: EvalConfig, repeats: int, on_run=None) -> EvalBenchResult:
 
 
 def bench_config(episodes_per_split: int, batch_size: int, backend: str = "mujoco", threads: int | None = None,
-                 oracle_tries: int | None = None, workers: int | None = None) -> EvalConfig:
+                 oracle_tries: int | None = None, workers: int | None = None, processes: int = 1) -> EvalConfig:
     """The oracle on every test split, skill mode, `episodes_per_split` generated episodes each (seed 0)."""
     return dataclasses.replace(EvalConfig(), splits=TEST_SPLITS, episodes_per_split=episodes_per_split,
                                batch_size=batch_size, backend=backend, num_threads=threads, oracle_tries=oracle_tries,
-                               workers=workers)
+                               workers=workers, processes=processes)
+
+
+def parallelism(config: EvalConfig) -> str:
+    """How a run rolls objects out at once: 'N threads' or 'N processes'."""
+    if config.processes > 1:
+        return f"{config.processes} processes"
+    threads = default_workers(config.backend) if config.workers is None else config.workers
+    return f"{threads} thread{'s' if threads > 1 else ''}"
 
 
 def markdown(results: list[EvalBenchResult], device: str, cache: str) -> str:
@@ -96,8 +104,7 @@ def markdown(results: list[EvalBenchResult], device: str, cache: str) -> str:
         low, high = r.episodes_per_min_range
         successes = r.cold.successes
         tries = SEGMENT_TRIES if r.config.oracle_tries is None else r.config.oracle_tries
-        workers = default_workers(r.config.backend) if r.config.workers is None else r.config.workers
-        rows.append(f"| {r.config.batch_size} | {tries} | {workers} | {r.cold.episodes} | {successes} ({successes / r.cold.episodes:.0%}) | "
+        rows.append(f"| {r.config.batch_size} | {tries} | {parallelism(r.config)} | {r.cold.episodes} | {successes} ({successes / r.cold.episodes:.0%}) | "
                     f"{r.episodes_per_min:,.1f} | {low:,.1f} - {high:,.1f} | "
                     f"{np.median([w.wall_s for w in r.warm]):.1f} | {r.compile_s:.1f} | "
                     f"{r.cold.episodes / r.cold.wall_s * 60:,.1f} | {r.full_evaluation_min:,.1f} |")
@@ -105,14 +112,15 @@ def markdown(results: list[EvalBenchResult], device: str, cache: str) -> str:
     return (
         f"`partinstruct eval --policy oracle` ({first.mode} mode) on {first.episodes_per_split} generated episodes "
         f"of each of {', '.join(first.splits)} (seed {first.seed}), `{first.backend}` backend"
-        f"{f' with {threads} threads shared by the workers' if first.backend == 'mujoco' else ''}, JAX on {device}; "
+        f"{f' with {threads} physics threads shared by the workers' if first.backend == 'mujoco' else ''}, JAX on {device}; "
         f"JAX persistent "
         f"compilation cache: {cache}. Each run's wall time is the whole evaluation (episode generation, one "
         f"environment per object and batch size, rollouts to success or the step limit, results files). "
         f"Rates are medians of {len(results[0].warm)} warm run(s); 'compile' is the cold run's wall time (in-process "
         f"JAX caches cleared) minus the warm median. The last column projects {FULL_EVALUATION:,} episodes (the "
         f"DESIGN.md target: < 10 minutes on one H100) at the warm rate plus the compile once; a trained policy adds "
-        f"its own inference to every step.\n\n"
+        f"its own inference to every step. Worker processes start afresh in every run (imports, tracing), so their "
+        f"warm runs pay what the threads' cold run does, less the persistent cache's compiles.\n\n"
         "| batch | oracle tries | workers | episodes | oracle success | episodes/min | range | warm wall s | "
         f"compile s | cold episodes/min | {FULL_EVALUATION:,} episodes, min |\n"
         "|---|---|---|---|---|---|---|---|---|---|---|\n" + "\n".join(rows) + "\n")

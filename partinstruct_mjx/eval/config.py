@@ -44,9 +44,13 @@ class EvalConfig:
       workers: objects rolled out at once, each in a thread with its own env (num_threads // workers physics
         threads) and its own fork of the policy and planner (None: 2 on the mujoco backend, 1 on mjx, 1 for a
         policy or planner without `fork`).
+      processes: worker processes (1: none); each rolls out one object at a time with its own env, its share of
+        `num_threads` and its own copy of the policy and planner, loaded from this config. Unlike worker threads,
+        processes do not share one Python interpreter lock or one JAX runtime, which bound the threads' speed on a
+        many-core machine.
       oracle_tries: `--policy oracle` only: tries per grasp or touch in its private look-ahead copy of the env
         (1: the closed-loop oracle alone; None: `oracle.backtrack.SEGMENT_TRIES`).
-    `videos`, `num_threads` and `workers` do not change outcomes, so a run directory may be resumed with other
+    `videos`, `num_threads`, `workers` and `processes` do not change outcomes, so a run directory may be resumed with other
     values.
     """
 
@@ -67,6 +71,7 @@ class EvalConfig:
     num_threads: int | None = None
     oracle_tries: int | None = None
     workers: int | None = None
+    processes: int = 1
 
     def __post_init__(self):
         unknown = [s for s in self.splits if s not in SPLITS]
@@ -79,10 +84,13 @@ class EvalConfig:
         if self.backend not in ("mujoco", "mjx"):
             raise EvalError(f"unknown backend '{self.backend}'; expected mujoco or mjx")
         for name in ("batch_size", "planner_every", "episodes_per_split", "max_steps", "oracle_tries",
-                     "workers"):
+                     "workers", "processes"):
             value = getattr(self, name)
             if value is not None and value < 1:
                 raise EvalError(f"{name} must be >= 1, got {value}")
+        if self.processes > 1 and (self.workers or 1) > 1:
+            raise EvalError(f"workers ({self.workers}) and processes ({self.processes}): choose one (a process "
+                            f"rolls out one object at a time)")
         if self.episodes_per_split is None and self.metadata is None:
             raise EvalError("episodes_per_split is needed unless episodes come from a metadata file")
         if self.videos < 0:
@@ -91,5 +99,5 @@ class EvalConfig:
     def identity(self) -> dict:
         """The settings a resumed run must share with its run directory: all that can change an outcome."""
         fields = asdict(self)
-        del fields["num_threads"], fields["videos"], fields["workers"]
+        del fields["num_threads"], fields["videos"], fields["workers"], fields["processes"]
         return {k: list(v) if isinstance(v, tuple) else v for k, v in fields.items()}

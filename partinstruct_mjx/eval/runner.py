@@ -9,11 +9,16 @@ so an interrupted run loses no finished batch and the same command resumes it.
 
 from __future__ import annotations
 
+import itertools
 import json
+import multiprocessing
 import os
 import threading
 import time
 import warnings
+from collections.abc import Iterator
+from concurrent.futures import Executor, ProcessPoolExecutor
+from contextlib import contextmanager
 from dataclasses import asdict
 from pathlib import Path
 
@@ -35,17 +40,19 @@ REPORT = "results.md"
 SCHEMA_VERSION = 1
 
 
-def select_eval_episodes(config: EvalConfig) -> list[Episode]:
+def select_eval_episodes(config: EvalConfig, pool: Executor | None = None) -> list[Episode]:
     """Each split's episodes (in `select_episodes`' order, which spreads a prefix over task types and categories),
-    splits in config order."""
+    splits in config order; with a process `pool`, the splits are drawn in its processes at once."""
+    jobs = [(split, config) for split in config.splits]
+    drawn = pool.map(_split_episodes, *zip(*jobs)) if pool is not None else itertools.starmap(_split_episodes, jobs)
+    return [episode for episodes in drawn for episode in episodes]
+
+
+def _split_episodes(split: str, config: EvalConfig) -> list[Episode]:
     from partinstruct_mjx.data.synthesis import select_episodes
 
-    episodes = []
-    for split in config.splits:
-        episodes += select_episodes(split, config.episodes_per_split, config.seed, None,
-                                    list(config.categories) if config.categories else None, config.metadata,
-                                    config.assets)
-    return episodes
+    return select_episodes(split, config.episodes_per_split, config.seed, None,
+                           list(config.categories) if config.categories else None, config.metadata, config.assets)
 
 
 def evaluate(config: EvalConfig, out_dir: str | os.PathLike, policy: Policy | None = None,
@@ -56,15 +63,10 @@ def evaluate(config: EvalConfig, out_dir: str | os.PathLike, policy: Policy | No
     the run). Episodes already in `out_dir`'s results.json (same settings) are kept, not run again; EvalError if
     `out_dir` holds a run with other settings. Returns the results dict written to results.json.
     """
-    from tqdm import tqdm
-
-    from partinstruct_mjx.data.synthesis import object_paths, object_batches, object_groups
-    from partinstruct_mjx.paths import assets_root
-    from partinstruct_mjx.provenance import provenance
-
     out_dir = Path(out_dir)
     if out_dir.exists() and not out_dir.is_dir():
         raise EvalError(f"--out {out_dir} is a file, not a directory")
+    given_policy, given_planner = policy is not None, planner is not None
     if policy is None:
         policy = load_policy(config.policy, config.oracle_tries)
     if not isinstance(policy, Policy):
@@ -74,9 +76,26 @@ def evaluate(config: EvalConfig, out_dir: str | os.PathLike, policy: Policy | No
         planner = make_planner(config.planner)
     elif not isinstance(planner, Planner):
         raise EvalError(f"the planner ({type(planner).__name__}) lacks instructions(env, state, step)")
+    if config.processes > 1 and (given_policy or given_planner):
+        raise EvalError(f"--processes {config.processes}: each process loads the policy and planner its config names; "
+                        f"evaluate() was handed {'a policy' if given_policy else 'a planner'} object: use processes=1")
     if config.videos:
         _check_opengl()
-    episodes = select_eval_episodes(config)
+    with _process_pool(config.processes) as pool:
+        return _evaluate(config, out_dir, policy, planner, pool, progress)
+
+
+def _evaluate(config: EvalConfig, out_dir: Path, policy: Policy, planner: Planner | None, pool: Executor | None,
+              progress: bool) -> dict:
+    """`evaluate` once its policy and planner are set: objects rolled out in worker threads, or in `pool`'s
+    processes."""
+    from tqdm import tqdm
+
+    from partinstruct_mjx.data.synthesis import object_groups, object_paths
+    from partinstruct_mjx.paths import assets_root
+    from partinstruct_mjx.provenance import provenance
+
+    episodes = select_eval_episodes(config, pool)
     objects = object_paths(episodes, Path(config.assets) if config.assets else assets_root())
     wanted = {e.ep_id for e in episodes}
     records = {ep_id: r for ep_id, r in _finished(out_dir, config).items() if ep_id in wanted}
@@ -88,44 +107,41 @@ def evaluate(config: EvalConfig, out_dir: str | os.PathLike, policy: Policy | No
             "run": {"resumed_episodes": len(records), "episodes_run": 0, "wall_s": 0.0}, "provenance": provenance()}
 
     start = time.perf_counter()
-    key = jax.random.PRNGKey(config.seed)
-    groups = object_groups(todo)
-    workers = max(1, min(_workers(config, policy, planner), len(groups)))
+    # The objects with the most steps to run first, so that the workers finish together.
+    groups = sorted(object_groups(todo).items(), key=lambda group: -sum(_step_limit(e.split) for e in group[1]))
+    workers = config.processes if pool is not None else max(1, min(_workers(config, policy, planner), len(groups)))
     threads_each = threads_per_worker(config.num_threads, workers)
-    meta["run"]["workers"] = workers
+    meta["run"].update(workers=workers, processes=config.processes)
     # Each worker thread acts with a policy (and planner) of its own: they keep per-batch state.
     agents = [(policy, planner)] + [(policy.fork(), None if planner is None else planner.fork())
-                                    for _ in range(workers - 1)]
+                                    for _ in range(workers - 1 if pool is None else 0)]
     lock = threading.Lock()
     bar = tqdm(total=len(todo), desc="eval", unit="episode", disable=not progress or not todo)
 
     def run_object(slot: int, group, stop: threading.Event) -> None:
-        """Roll out one object's batches (until the run stops); record and write each finished batch."""
+        """Roll out one object's batches (until the run stops), here or in a worker process; record and write
+        what each returns."""
         obj, mine = group
-        envs = {}
-        try:
-            for batch, size in object_batches(mine, config.batch_size):
-                if stop.is_set():
-                    return
-                if size not in envs:
-                    envs[size] = _make_env(objects[obj], size, config, threads_each)
-                finished = _run_batch(envs[size], batch, *agents[slot], config, key, filmed, out_dir)
-                with lock:
-                    records.update((record["ep_id"], record) for record in finished)
-                    meta["run"]["episodes_run"] += len(batch)
-                    meta["run"]["wall_s"] = time.perf_counter() - start
-                    _write(out_dir, config, meta, records, complete=False)
-                    successes = sum(r["success"] for r in records.values())
-                    bar.set_postfix(
-                        episodes_per_min=f"{60 * meta['run']['episodes_run'] / meta['run']['wall_s']:.1f}",
-                        success=f"{successes / len(records):.0%}", refresh=False)
-                    bar.update(len(batch))
-        finally:
-            for env in envs.values():
-                env.close()
+        if pool is None:
+            finished_batches = _object_records(objects[obj], mine, *agents[slot], config, threads_each, filmed,
+                                               out_dir, stop)
+        else:
+            finished_batches = _in_process(pool, stop, _process_object_records, objects[obj], mine, config,
+                                           threads_each, filmed, out_dir)
+        for finished in finished_batches:
+            with lock:
+                records.update((record["ep_id"], record) for record in finished)
+                meta["run"]["episodes_run"] += len(finished)
+                meta["run"]["wall_s"] = time.perf_counter() - start
+                _write(out_dir, config, meta, records, complete=False)
+                successes = sum(r["success"] for r in records.values())
+                bar.set_postfix(
+                    episodes_per_min=f"{60 * meta['run']['episodes_run'] / meta['run']['wall_s']:.1f}",
+                    success=f"{successes / len(records):.0%}", refresh=False)
+                bar.update(len(finished))
 
     try:
-        run_in_threads(groups.items(), workers, run_object, "partinstruct-eval")
+        run_in_threads(groups, workers, run_object, "partinstruct-eval")
     finally:
         bar.close()
         for agent, _ in agents:
@@ -133,6 +149,78 @@ def evaluate(config: EvalConfig, out_dir: str | os.PathLike, policy: Policy | No
                 agent.close()
     meta["run"]["wall_s"] = time.perf_counter() - start
     return _write(out_dir, config, meta, records, complete=True)
+
+
+def _object_records(object_xml: Path, episodes: list[Episode], policy: Policy, planner: Planner | None,
+                    config: EvalConfig, num_threads: int, filmed: set[int], out_dir: Path,
+                    stop: threading.Event | None = None) -> Iterator[list[dict]]:
+    """Roll out one object's episodes batch by batch (one env per batch size) until `stop` is set; yield each
+    batch's records."""
+    from partinstruct_mjx.data.synthesis import object_batches
+
+    key = jax.random.PRNGKey(config.seed)
+    envs = {}
+    try:
+        for batch, size in object_batches(episodes, config.batch_size):
+            if stop is not None and stop.is_set():
+                return
+            if size not in envs:
+                envs[size] = _make_env(object_xml, size, config, num_threads)
+            yield _run_batch(envs[size], batch, policy, planner, config, key, filmed, out_dir)
+    finally:
+        for env in envs.values():
+            env.close()
+
+
+_PROCESS_AGENTS: dict[EvalConfig, tuple[Policy, Planner | None]] = {}
+"""A worker process's policy and planner, loaded once from the config they serve."""
+
+
+def _process_object_records(object_xml: Path, episodes: list[Episode], config: EvalConfig, num_threads: int,
+                            filmed: set[int], out_dir: Path) -> list[dict]:
+    """A worker process's job: one object's episodes with the process's own policy and planner; their records."""
+    if config not in _PROCESS_AGENTS:
+        _PROCESS_AGENTS[config] = load_policy(config.policy, config.oracle_tries), make_planner(config.planner)
+    agents = _PROCESS_AGENTS[config]
+    return [record for finished in _object_records(object_xml, episodes, *agents, config, num_threads, filmed,
+                                                   out_dir) for record in finished]
+
+
+def _in_process(pool: Executor, stop: threading.Event, function, *args) -> list:
+    """[function(*args)] run in `pool`; [] if `stop` is set first (the job is then cancelled if it has not
+    started)."""
+    future = pool.submit(function, *args)
+    while True:
+        try:
+            return [future.result(timeout=1.0)]
+        except TimeoutError:
+            if stop.is_set():
+                future.cancel()
+                return []
+
+
+PREALLOCATE = "XLA_PYTHON_CLIENT_PREALLOCATE"
+
+
+@contextmanager
+def _process_pool(processes: int) -> Iterator[Executor | None]:
+    """`processes` spawned worker processes (None for 1), each with the persistent compilation cache on. JAX in
+    them does not preallocate GPU memory (PREALLOCATE=false unless set), so that several share one GPU."""
+    if processes == 1:
+        yield None
+        return
+    from partinstruct_mjx.jax_setup import enable_compilation_cache
+
+    before = os.environ.get(PREALLOCATE)
+    os.environ.setdefault(PREALLOCATE, "false")
+    pool = ProcessPoolExecutor(processes, mp_context=multiprocessing.get_context("spawn"),
+                               initializer=enable_compilation_cache)
+    try:
+        yield pool
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
+        if before is None:
+            os.environ.pop(PREALLOCATE, None)
 
 
 def _workers(config: EvalConfig, policy: Policy, planner: Planner | None) -> int:
@@ -256,10 +344,15 @@ def _label(config: EvalConfig) -> str:
     return f"{name}{planner} ({config.mode} mode)"
 
 
-def _resolved(config: EvalConfig, episodes: list[Episode], policy: Policy, planner: Planner | None) -> dict:
+def _step_limit(split: str) -> int:
+    """A split's episode horizon: 400 env steps for test4, 250 for the others."""
     from partinstruct_mjx.env import STEP_LIMIT, STEP_LIMIT_TEST4
 
-    limits = {s: STEP_LIMIT_TEST4 if s == "test4" else STEP_LIMIT for s in config.splits}
+    return STEP_LIMIT_TEST4 if split == "test4" else STEP_LIMIT
+
+
+def _resolved(config: EvalConfig, episodes: list[Episode], policy: Policy, planner: Planner | None) -> dict:
+    limits = {s: _step_limit(s) for s in config.splits}
     return {"config": asdict(config), "policy_class": type(policy).__qualname__,
             "planner_class": None if planner is None else type(planner).__qualname__,
             "episodes_per_split": {s: sum(e.split == s for e in episodes) for s in config.splits},
