@@ -179,6 +179,26 @@ def test_outcomes_do_not_depend_on_the_workers(tmp_path):
     assert outcomes[0] == outcomes[1] == outcomes[2]
 
 
+@pytest.mark.parametrize("finished", [False, True])
+def test_an_interrupted_run_says_what_it_kept(tmp_path, capsys, monkeypatch, finished):
+    """Ctrl-C exits 130 and says whether finished batches were written (a run stopped before any says nothing was)."""
+    out = tmp_path / "out"
+
+    def interrupted(config, out_dir, progress):
+        if finished:
+            out_dir.mkdir()
+            (out_dir / "results.json").write_text("{}")
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr("partinstruct_mjx.eval.runner.evaluate", interrupted)
+    assert main(["eval", "--policy", "oracle", "--out", str(out), "--quiet"]) == 130
+    err = capsys.readouterr().err
+    if finished:
+        assert f"interrupted: finished batches are in {out / 'results.json'}; run the same command again" in err
+    else:
+        assert "interrupted: no batch had finished, nothing was written; run the same command again" in err
+
+
 def test_a_custom_policy_gets_the_skill_instructions(metadata, tmp_path):
     """The Python API with a policy object: a policy that holds still gets each scene's current skill instruction."""
 

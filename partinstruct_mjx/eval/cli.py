@@ -128,8 +128,9 @@ def run_eval(args: argparse.Namespace) -> int:
     try:
         results = evaluate(config, args.out, progress=not args.quiet)
     except KeyboardInterrupt:
-        print(f"\ninterrupted: finished batches are in {args.out / RESULTS}; run the same command again to resume",
-              file=sys.stderr)
+        done = (f"finished batches are in {args.out / RESULTS}" if (args.out / RESULTS).exists()
+                else "no batch had finished, nothing was written")
+        print(f"\ninterrupted: {done}; run the same command again to resume", file=sys.stderr)
         return 130
     summary = results["summary"]
     splits = [s for s in config.splits if summary["per_split"][s]["episodes"]]
