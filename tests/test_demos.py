@@ -196,6 +196,17 @@ def test_episode_choice_spreads_over_types_and_categories():
     assert all(seeds[e.ep_id] == e.seed for e in ten + mugs)
 
 
+def test_episodes_drawn_in_worker_processes_are_the_same():
+    """A process pool draws each category's episodes in one of its processes: the same episodes, in the same order."""
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+
+    with ProcessPoolExecutor(2, mp_context=multiprocessing.get_context("spawn")) as pool:
+        drawn = select_episodes("test1", 6, categories=["mug", "bottle"], pool=pool)
+    assert drawn == select_episodes("test1", 6, categories=["mug", "bottle"])
+    assert {e.obj_class for e in drawn} == {"mug", "bottle"}
+
+
 def test_generated_selection_is_remembered_in_the_run_directory(tmp_path, monkeypatch):
     first = remembered_selection(tmp_path, "train", 5, seed=1, types=[2, 5], categories=["mug"])
     assert first == select_episodes("train", 5, seed=1, types=[2, 5], categories=["mug"])

@@ -23,8 +23,9 @@ import os
 import threading
 import time
 from collections import Counter
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Executor, ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field, replace
+from functools import partial
 from pathlib import Path
 
 import jax
@@ -363,7 +364,7 @@ def split_types(split: str) -> dict[str, tuple[int, ...]]:
 def select_episodes(split: str | None = "train", count: int | None = None, seed: int = 0,
                     types: list[int] | None = None, categories: list[str] | None = None,
                     metadata: str | os.PathLike | None = None,
-                    assets: str | os.PathLike | None = None) -> list[Episode]:
+                    assets: str | os.PathLike | None = None, pool: Executor | None = None) -> list[Episode]:
     """The episodes a synthesis run works on, in a deterministic order that interleaves task types and categories.
 
     Without `metadata`, episodes are generated (seeded, like `partinstruct episodes`) with just enough per
@@ -371,7 +372,8 @@ def select_episodes(split: str | None = "train", count: int | None = None, seed:
     and `categories` filter; `count` keeps the first episodes of the interleaved order (every selected type is
     represented once count >= #types). Only the wanted (category, type) cells are drawn, with the ids and draws they
     have when the whole catalog is, and numbered draw-first (see `_renumbered`), so an episode keeps its ep_id
-    whatever the filters and the count.
+    whatever the filters and the count. With a process `pool`, each category's episodes are drawn in one of its
+    processes (every draw is seeded by its own cell and number, so the episodes are the same).
     """
     root = Path(assets) if assets is not None else assets_root()
     catalog = load_catalog(root)
@@ -419,14 +421,28 @@ def select_episodes(split: str | None = "train", count: int | None = None, seed:
             raise TaskError(f"split {split} has no objects of categories {categories}")
         per_type = math.ceil(count / chosen) if count is not None else 1
 
-        def wanted_cell(category: str, type_id: int) -> bool:
-            return ((not types or type_id in types)
-                    and (chosen_categories is None or category_slug(category) in chosen_categories))
-
-        generated = generate_episodes(catalog, root, seed, per_type, tuple(wanted), cells=wanted_cell)
+        cells = frozenset((entry["category"], type_id) for entry in catalog for its_types in wanted.values()
+                          for type_id in its_types if (not types or type_id in types)
+                          and (chosen_categories is None or category_slug(entry["category"]) in chosen_categories))
+        generated = _generated(catalog, root, seed, per_type, tuple(wanted), cells, pool)
         episodes = [e for e in _renumbered(generated, per_type, all_cells) if keep(e)]
     ordered = interleave(episodes)
     return ordered if count is None else ordered[:count]
+
+
+def _generated(catalog: list[dict], root: Path, seed: int, per_type: int, splits: tuple[str, ...],
+               cells: frozenset[tuple[str, int]], pool: Executor | None) -> list[Episode]:
+    """`generate_episodes` of the (category, type) `cells`; with a process `pool`, one category per job."""
+    if pool is None:
+        return generate_episodes(catalog, root, seed, per_type, splits, cells=partial(_in_cells, cells))
+    categories = sorted({category for category, _ in cells})
+    jobs = [frozenset(cell for cell in cells if cell[0] == category) for category in categories]
+    drawn = pool.map(partial(_generated, catalog, root, seed, per_type, splits, pool=None), jobs)
+    return sorted((episode for episodes in drawn for episode in episodes), key=lambda episode: episode.ep_id)
+
+
+def _in_cells(cells: frozenset[tuple[str, int]], category: str, type_id: int) -> bool:
+    return (category, type_id) in cells
 
 
 def remembered_selection(out_dir: str | os.PathLike, split: str, count: int, seed: int = 0,

@@ -9,7 +9,6 @@ so an interrupted run loses no finished batch and the same command resumes it.
 
 from __future__ import annotations
 
-import itertools
 import json
 import multiprocessing
 import os
@@ -42,17 +41,15 @@ SCHEMA_VERSION = 1
 
 def select_eval_episodes(config: EvalConfig, pool: Executor | None = None) -> list[Episode]:
     """Each split's episodes (in `select_episodes`' order, which spreads a prefix over task types and categories),
-    splits in config order; with a process `pool`, the splits are drawn in its processes at once."""
-    jobs = [(split, config) for split in config.splits]
-    drawn = pool.map(_split_episodes, *zip(*jobs)) if pool is not None else itertools.starmap(_split_episodes, jobs)
-    return [episode for episodes in drawn for episode in episodes]
-
-
-def _split_episodes(split: str, config: EvalConfig) -> list[Episode]:
+    splits in config order; with a process `pool`, each category's episodes are drawn in one of its processes."""
     from partinstruct_mjx.data.synthesis import select_episodes
 
-    return select_episodes(split, config.episodes_per_split, config.seed, None,
-                           list(config.categories) if config.categories else None, config.metadata, config.assets)
+    episodes = []
+    for split in config.splits:
+        episodes += select_episodes(split, config.episodes_per_split, config.seed, None,
+                                    list(config.categories) if config.categories else None, config.metadata,
+                                    config.assets, pool)
+    return episodes
 
 
 def evaluate(config: EvalConfig, out_dir: str | os.PathLike, policy: Policy | None = None,
