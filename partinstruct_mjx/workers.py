@@ -1,4 +1,5 @@
-"""Objects simulated at once in threads: demo synthesis and evaluation run one object's env per worker thread.
+"""Objects simulated at once in threads: demo synthesis and evaluation run one object's env per worker thread;
+evaluation can use worker processes instead (`process_pool`), which also draw large episode selections.
 
 JAX and C MuJoCo release the GIL, so one thread's physics runs while another's JAX oracle, IK or policy does; on a
 GPU several small batches keep the device busier than one. Results do not depend on the number of workers: every
@@ -7,11 +8,15 @@ random draw derives from the seed and the episode, never from the thread that ra
 
 from __future__ import annotations
 
+import multiprocessing
 import os
 import queue
 import threading
-from collections.abc import Callable, Iterable
-from concurrent.futures import FIRST_EXCEPTION, ThreadPoolExecutor, wait
+from collections.abc import Callable, Iterable, Iterator
+from concurrent.futures import FIRST_EXCEPTION, Executor, ProcessPoolExecutor, ThreadPoolExecutor, wait
+from contextlib import contextmanager
+
+PREALLOCATE = "XLA_PYTHON_CLIENT_PREALLOCATE"
 
 
 def default_workers(backend: str) -> int:
@@ -55,3 +60,25 @@ def run_in_threads(items: Iterable, workers: int, work: Callable[[int, object, t
             stop.set()
             wait(runs)
             raise
+
+
+@contextmanager
+def process_pool(processes: int) -> Iterator[Executor | None]:
+    """`processes` spawned worker processes (None for 1), each with the persistent compilation cache on; they start
+    when the first job is submitted. JAX in them does not preallocate GPU memory (PREALLOCATE=false unless set), so
+    that several share one GPU."""
+    if processes == 1:
+        yield None
+        return
+    from partinstruct_mjx.jax_setup import enable_compilation_cache
+
+    before = os.environ.get(PREALLOCATE)
+    os.environ.setdefault(PREALLOCATE, "false")
+    pool = ProcessPoolExecutor(processes, mp_context=multiprocessing.get_context("spawn"),
+                               initializer=enable_compilation_cache)
+    try:
+        yield pool
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
+        if before is None:
+            os.environ.pop(PREALLOCATE, None)

@@ -1,6 +1,7 @@
 """`partinstruct demos`: what a run writes, resume, reproducibility, cloud shapes, replay, episode choice, help."""
 
 import json
+import os
 from collections import Counter
 
 import numpy as np
@@ -220,6 +221,25 @@ def test_generated_selection_is_remembered_in_the_run_directory(tmp_path, monkey
     monkeypatch.setattr(synthesis, "generate_episodes", no_generation)
     assert remembered_selection(tmp_path, "train", 5, seed=1, types=[5, 2], categories=["mug"]) == first  # read back
     assert stored.exists()
+
+
+def test_a_large_selection_is_drawn_in_one_process_per_core(tmp_path, monkeypatch):
+    """From DRAW_IN_PROCESSES episodes on (here lowered to 4), a run directory's selection is drawn in a pool of one
+    process per core; the episodes are those drawn in one process."""
+    asked = []
+    real_pool = synthesis.process_pool
+
+    def spied_pool(processes):
+        asked.append(processes)
+        return real_pool(processes)
+
+    monkeypatch.setattr(synthesis, "process_pool", spied_pool)
+    monkeypatch.setattr(synthesis, "DRAW_IN_PROCESSES", 4)
+    small = remembered_selection(tmp_path / "small", "train", 3, types=[2, 5], categories=["mug", "bottle"])
+    large = remembered_selection(tmp_path / "large", "train", 4, types=[2, 5], categories=["mug", "bottle"])
+    assert asked == [1, os.cpu_count() or 1]
+    assert small == large[:3]
+    assert large == select_episodes("train", 4, types=[2, 5], categories=["mug", "bottle"])
 
 
 @pytest.mark.parametrize("args, message", [(["--split", "test9"], "unknown split"),

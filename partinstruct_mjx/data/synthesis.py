@@ -38,7 +38,7 @@ from partinstruct_mjx.errors import DataError, TaskError
 from partinstruct_mjx.paths import assets_root
 from partinstruct_mjx.tasks.episodes import (SPLIT_ID_STRIDE, SPLIT_TYPES, SPLITS, Episode, generate_episodes,
                                              read_metadata, validate_episodes, write_metadata)
-from partinstruct_mjx.workers import default_workers, run_in_threads, threads_per_worker
+from partinstruct_mjx.workers import default_workers, process_pool, run_in_threads, threads_per_worker
 
 ALL_TYPES = "all-types"
 """Pseudo-split: train for task types 1-10 plus test4 for 11-16 (every type once, for a per-type table)."""
@@ -445,13 +445,19 @@ def _in_cells(cells: frozenset[tuple[str, int]], category: str, type_id: int) ->
     return (category, type_id) in cells
 
 
+DRAW_IN_PROCESSES = 500
+"""A selection of at least this many episodes is drawn in one process per core (drawing takes about 0.1 s an
+episode on a core, mostly the grasp checks; each process's start costs seconds)."""
+
+
 def remembered_selection(out_dir: str | os.PathLike, split: str, count: int, seed: int = 0,
                          types: list[int] | None = None, categories: list[str] | None = None,
                          assets: str | os.PathLike | None = None) -> list[Episode]:
     """`select_episodes` without a metadata file, generated once per run directory: the episodes are kept in
     `out_dir/selections/<digest of the arguments>.json` (metadata schema) and read back when the same selection is
     asked for again, so a resumed run neither waits for the generator (minutes for thousands of episodes: the grasp
-    checks) nor sees other episodes if the generator's code changed in between."""
+    checks) nor sees other episodes if the generator's code changed in between. DRAW_IN_PROCESSES or more episodes
+    are drawn in one process per core."""
     selection = {"split": split, "count": count, "seed": seed, "types": sorted(types) if types else None,
                  "categories": sorted(category_slug(c) for c in categories) if categories else None,
                  "assets": str(Path(assets).resolve()) if assets is not None else None}
@@ -459,7 +465,8 @@ def remembered_selection(out_dir: str | os.PathLike, split: str, count: int, see
     path = Path(out_dir) / SELECTIONS_DIR / f"{digest}.json"
     if path.exists():
         return interleave(read_metadata(path))
-    episodes = select_episodes(split, count, seed, types, categories, None, assets)
+    with process_pool((os.cpu_count() or 1) if count >= DRAW_IN_PROCESSES else 1) as pool:
+        episodes = select_episodes(split, count, seed, types, categories, None, assets, pool)
     write_metadata(episodes, path)
     return episodes
 

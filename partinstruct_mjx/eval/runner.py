@@ -10,14 +10,12 @@ so an interrupted run loses no finished batch and the same command resumes it.
 from __future__ import annotations
 
 import json
-import multiprocessing
 import os
 import threading
 import time
 import warnings
 from collections.abc import Iterator
-from concurrent.futures import Executor, ProcessPoolExecutor
-from contextlib import contextmanager
+from concurrent.futures import Executor
 from dataclasses import asdict
 from pathlib import Path
 
@@ -32,7 +30,7 @@ from partinstruct_mjx.eval.planner import Planner, make_planner
 from partinstruct_mjx.eval.policy import OraclePolicy, Policy, load_policy
 from partinstruct_mjx.eval.skills import SkillProgress
 from partinstruct_mjx.tasks.episodes import SPLITS, Episode
-from partinstruct_mjx.workers import default_workers, run_in_threads, threads_per_worker
+from partinstruct_mjx.workers import default_workers, process_pool, run_in_threads, threads_per_worker
 
 RESULTS = "results.json"
 REPORT = "results.md"
@@ -78,7 +76,7 @@ def evaluate(config: EvalConfig, out_dir: str | os.PathLike, policy: Policy | No
                         f"evaluate() was handed {'a policy' if given_policy else 'a planner'} object: use processes=1")
     if config.videos:
         _check_opengl()
-    with _process_pool(config.processes) as pool:
+    with process_pool(config.processes) as pool:
         return _evaluate(config, out_dir, policy, planner, pool, progress)
 
 
@@ -194,30 +192,6 @@ def _in_process(pool: Executor, stop: threading.Event, function, *args) -> list:
             if stop.is_set():
                 future.cancel()
                 return []
-
-
-PREALLOCATE = "XLA_PYTHON_CLIENT_PREALLOCATE"
-
-
-@contextmanager
-def _process_pool(processes: int) -> Iterator[Executor | None]:
-    """`processes` spawned worker processes (None for 1), each with the persistent compilation cache on. JAX in
-    them does not preallocate GPU memory (PREALLOCATE=false unless set), so that several share one GPU."""
-    if processes == 1:
-        yield None
-        return
-    from partinstruct_mjx.jax_setup import enable_compilation_cache
-
-    before = os.environ.get(PREALLOCATE)
-    os.environ.setdefault(PREALLOCATE, "false")
-    pool = ProcessPoolExecutor(processes, mp_context=multiprocessing.get_context("spawn"),
-                               initializer=enable_compilation_cache)
-    try:
-        yield pool
-    finally:
-        pool.shutdown(wait=True, cancel_futures=True)
-        if before is None:
-            os.environ.pop(PREALLOCATE, None)
 
 
 def _workers(config: EvalConfig, policy: Policy, planner: Planner | None) -> int:
