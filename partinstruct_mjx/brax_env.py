@@ -29,7 +29,7 @@ from flax import struct
 from mujoco import mjx
 
 from partinstruct_mjx.control import jax_ik
-from partinstruct_mjx.env import STEP_LIMIT, STEP_LIMIT_TEST4, EnvConfig, joint_targets, observe
+from partinstruct_mjx.env import EnvConfig, joint_targets, observe, step_limit
 from partinstruct_mjx.errors import SceneError, TaskError
 from partinstruct_mjx.sim import panda
 from partinstruct_mjx.sim.mjx_backend import extract_state, fresh_data, put_model, scene_indices
@@ -129,7 +129,7 @@ class BraxPartInstructEnv(Env):
         self.config = config
         self.skill_mode = config.skill_mode if skill_mode is None else bool(skill_mode)
         self.episodes = episodes
-        self.episode_length = max(STEP_LIMIT_TEST4 if e.split == "test4" else STEP_LIMIT for e in episodes)
+        self.episode_length = max(step_limit(e.split) for e in episodes)
         """The longest step limit among the episodes (250, or 400 with test4): EpisodeWrapper's episode_length."""
         self.scene = build_scene(replace(config.scene, object_xml=str(object_xml)))
         self.geometry, self.part_names = load_parts(self.scene)

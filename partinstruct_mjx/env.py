@@ -32,6 +32,11 @@ STEP_LIMIT_TEST4 = 400
 """Evaluation horizons in env steps (spec 9.4)."""
 
 
+def step_limit(split: str) -> int:
+    """A split's episode horizon: STEP_LIMIT_TEST4 for test4, STEP_LIMIT for the others."""
+    return STEP_LIMIT_TEST4 if split == "test4" else STEP_LIMIT
+
+
 @dataclass(frozen=True)
 class EnvConfig:
     """Environment settings.
@@ -152,7 +157,7 @@ class PartInstructEnv:
                 if step.part is not None:
                     self._target_rows[b, s] = self.part_names.index(step.part)
         task = _initial(data.for_jit(), self.geometry, compiled)
-        limits = np.array([STEP_LIMIT_TEST4 if e.split == "test4" else STEP_LIMIT for e in episodes], np.int32)
+        limits = np.array([step_limit(e.split) for e in episodes], np.int32)
         info = {"steps": jnp.zeros(self.batch_size, jnp.int32), "step_limit": jnp.asarray(limits),
                 "truncated": jnp.zeros(self.batch_size, bool),
                 "joint_targets": jnp.asarray(data.arm_qpos, jnp.float32)}

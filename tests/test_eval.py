@@ -199,6 +199,20 @@ def test_an_interrupted_run_says_what_it_kept(tmp_path, capsys, monkeypatch, fin
         assert "interrupted: no batch had finished, nothing was written; run the same command again" in err
 
 
+def test_objects_with_the_most_steps_to_run_go_first():
+    """Workers take the object groups in order of their episodes' step limits summed (400 for test4, 250 else)."""
+    from types import SimpleNamespace
+
+    from partinstruct_mjx.eval.runner import _largest_first
+
+    def episodes(*splits):
+        return [SimpleNamespace(split=split) for split in splits]
+
+    groups = {("mug", "a"): episodes("test1", "test1"), ("box", "b"): episodes("test4", "test4"),
+              ("mug", "c"): episodes("test1", "test2", "test3"), ("box", "d"): episodes("test4")}
+    assert [key for key, _ in _largest_first(groups)] == [("box", "b"), ("mug", "c"), ("mug", "a"), ("box", "d")]
+
+
 def test_a_custom_policy_gets_the_skill_instructions(metadata, tmp_path):
     """The Python API with a policy object: a policy that holds still gets each scene's current skill instruction."""
 

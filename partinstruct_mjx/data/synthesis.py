@@ -343,10 +343,9 @@ def _failure_name(episode: Episode, failed_skill: int, length: int) -> str:
     oracle executed the whole chain but the task's goals did not hold)."""
     if 0 <= failed_skill < len(episode.chain):
         return episode.chain[failed_skill].name
-    from partinstruct_mjx.env import STEP_LIMIT, STEP_LIMIT_TEST4
+    from partinstruct_mjx.env import step_limit
 
-    limit = STEP_LIMIT_TEST4 if episode.split == "test4" else STEP_LIMIT
-    return "step_limit" if length >= limit else "no_task_success"
+    return "step_limit" if length >= step_limit(episode.split) else "no_task_success"
 
 
 # --- choosing episodes ------------------------------------------------------------------------------------------

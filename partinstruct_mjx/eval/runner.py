@@ -102,8 +102,7 @@ def _evaluate(config: EvalConfig, out_dir: Path, policy: Policy, planner: Planne
             "run": {"resumed_episodes": len(records), "episodes_run": 0, "wall_s": 0.0}, "provenance": provenance()}
 
     start = time.perf_counter()
-    # The objects with the most steps to run first, so that the workers finish together.
-    groups = sorted(object_groups(todo).items(), key=lambda group: -sum(_step_limit(e.split) for e in group[1]))
+    groups = _largest_first(object_groups(todo))
     workers = config.processes if pool is not None else max(1, min(_workers(config, policy, planner), len(groups)))
     threads_each = threads_per_worker(config.num_threads, workers)
     meta["run"].update(workers=workers, processes=config.processes)
@@ -144,6 +143,14 @@ def _evaluate(config: EvalConfig, out_dir: Path, policy: Policy, planner: Planne
                 agent.close()
     meta["run"]["wall_s"] = time.perf_counter() - start
     return _write(out_dir, config, meta, records, complete=True)
+
+
+def _largest_first(groups: dict[tuple[str, str], list[Episode]]) -> list[tuple[tuple[str, str], list[Episode]]]:
+    """The object groups, the most env steps to run first (by their episodes' step limits), so that the workers
+    finish together."""
+    from partinstruct_mjx.env import step_limit
+
+    return sorted(groups.items(), key=lambda group: -sum(step_limit(e.split) for e in group[1]))
 
 
 def _object_records(object_xml: Path, episodes: list[Episode], policy: Policy, planner: Planner | None,
@@ -315,15 +322,10 @@ def _label(config: EvalConfig) -> str:
     return f"{name}{planner} ({config.mode} mode)"
 
 
-def _step_limit(split: str) -> int:
-    """A split's episode horizon: 400 env steps for test4, 250 for the others."""
-    from partinstruct_mjx.env import STEP_LIMIT, STEP_LIMIT_TEST4
-
-    return STEP_LIMIT_TEST4 if split == "test4" else STEP_LIMIT
-
-
 def _resolved(config: EvalConfig, episodes: list[Episode], policy: Policy, planner: Planner | None) -> dict:
-    limits = {s: _step_limit(s) for s in config.splits}
+    from partinstruct_mjx.env import step_limit
+
+    limits = {s: step_limit(s) for s in config.splits}
     return {"config": asdict(config), "policy_class": type(policy).__qualname__,
             "planner_class": None if planner is None else type(planner).__qualname__,
             "episodes_per_split": {s: sum(e.split == s for e in episodes) for s in config.splits},
