@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import itertools
+import os
 import sys
 import time
 from pathlib import Path
@@ -253,11 +254,13 @@ def _bench(args) -> int:
     elif args.suite in ("demos", "eval"):
         import jax
 
+        # Sections are keyed by what JAX ran on: the GPU, or the CPU and its cores (a GPU machine's 16 cores with
+        # JAX_PLATFORMS=cpu are not this 2-core CPU).
         gpu = jax.default_backend() != "cpu"
-        device = jax.devices()[0].device_kind
-        title = f"{args.suite}_{device.lower().replace(' ', '_')}" if gpu else args.suite
+        device = jax.devices()[0].device_kind if gpu else f"CPU, {os.cpu_count()} cores"
+        title = f"{args.suite}_{device.lower().replace(' ', '_')}" if gpu else f"{args.suite}_cpu{os.cpu_count()}"
         name = "Demonstration synthesis" if args.suite == "demos" else "Evaluation"
-        heading = f"{name} ({device})" if gpu else name
+        heading = f"{name} ({device})"
 
         def write(partial_table: str) -> None:
             """Rewrite the section after every measured row, so a run stopped at a time limit keeps its rows."""

@@ -1,5 +1,6 @@
 """The command line: help, the main job, and the benchmark writer."""
 
+import os
 import subprocess
 import sys
 
@@ -59,3 +60,5 @@ def test_bench_demos_keeps_the_rows_of_a_run_stopped_midway(tmp_path, monkeypatc
     assert calls == [1, 4]
     rows = [line for line in report.read_text().splitlines() if line.startswith("| 2 |")]
     assert len(rows) == 1 and rows[0].startswith("| 2 | 1 | 2 |")
+    # A CPU run's section names the core count: a GPU machine's cores with JAX on the CPU get a section of their own.
+    assert f"<!-- bench:demos_cpu{os.cpu_count()} -->" in report.read_text()
