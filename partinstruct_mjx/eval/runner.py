@@ -62,21 +62,23 @@ def evaluate(config: EvalConfig, out_dir: str | os.PathLike, policy: Policy | No
     if out_dir.exists() and not out_dir.is_dir():
         raise EvalError(f"--out {out_dir} is a file, not a directory")
     given_policy, given_planner = policy is not None, planner is not None
-    if policy is None:
-        policy = load_policy(config.policy, config.oracle_tries)
-    if not isinstance(policy, Policy):
-        raise EvalError(f"the policy ({type(policy).__name__}) lacks reset(env, state, key) / act(env, state, "
-                        f"instructions, key)")
-    if planner is None:
-        planner = make_planner(config.planner)
-    elif not isinstance(planner, Planner):
-        raise EvalError(f"the planner ({type(planner).__name__}) lacks instructions(env, state, step)")
     if config.processes > 1 and (given_policy or given_planner):
         raise EvalError(f"--processes {config.processes}: each process loads the policy and planner its config names; "
                         f"evaluate() was handed {'a policy' if given_policy else 'a planner'} object: use processes=1")
-    if config.videos:
-        _check_opengl()
+    # The pool's settings hold from here: the policy loaded here (to check it) does not take the GPU's memory from
+    # the processes (JAX preallocates 75 % of it by default: with 16 processes, a trained policy ran out of memory).
     with process_pool(config.processes) as pool:
+        if policy is None:
+            policy = load_policy(config.policy, config.oracle_tries)
+        if not isinstance(policy, Policy):
+            raise EvalError(f"the policy ({type(policy).__name__}) lacks reset(env, state, key) / act(env, state, "
+                            f"instructions, key)")
+        if planner is None:
+            planner = make_planner(config.planner)
+        elif not isinstance(planner, Planner):
+            raise EvalError(f"the planner ({type(planner).__name__}) lacks instructions(env, state, step)")
+        if config.videos:
+            _check_opengl()
         return _evaluate(config, out_dir, policy, planner, pool, progress)
 
 
