@@ -96,6 +96,9 @@ def main(argv: list[str] | None = None) -> int:
     bench.add_argument("--processes", type=int, nargs="+", default=None, metavar="N",
                        help="eval suite: worker processes (`partinstruct eval --processes`) to measure, side by side "
                             "with the --workers threads (default: none)")
+    bench.add_argument("--policy", default="oracle", metavar="POLICY",
+                       help="eval suite: 'oracle' (default) or a training run directory (`partinstruct train --out`); "
+                            "a trained policy's section is kept apart from the oracle's")
     bench.add_argument("--output", type=Path, default=DEFAULT_BENCH_OUTPUT,
                        help=f"markdown file to update (default {DEFAULT_BENCH_OUTPUT}); '-' prints only")
     bench.set_defaults(func=_bench)
@@ -260,6 +263,8 @@ def _bench(args) -> int:
         device = jax.devices()[0].device_kind if gpu else f"CPU, {os.cpu_count()} cores"
         title = f"{args.suite}_{device.lower().replace(' ', '_')}" if gpu else f"{args.suite}_cpu{os.cpu_count()}"
         name = "Demonstration synthesis" if args.suite == "demos" else "Evaluation"
+        if args.suite == "eval" and args.policy != "oracle":
+            title, name = f"{title}_trained_policy", "Evaluation of a trained policy"
         heading = f"{name} ({device})"
 
         def write(partial_table: str) -> None:
@@ -324,13 +329,14 @@ def _bench_eval(args, on_table) -> str:
     for batch, tries, (workers, processes) in itertools.product(args.batch_sizes or [16],
                                                                 args.oracle_tries or [SEGMENT_TRIES], parallel):
         config = evaluation.bench_config(args.episodes or 8, batch, args.backend, args.threads, tries, workers,
-                                         processes)
-        row = f"batch {batch:>3}, oracle tries {tries}, {evaluation.parallelism(config)}"
+                                         processes, args.policy)
+        tried = evaluation.oracle_tries(config)
+        row = f"batch {batch:>3}, {f'oracle tries {tried}, ' if tried else ''}{evaluation.parallelism(config)}"
         result = evaluation.measure(config, args.repeats, on_run=lambda index, run: print(
             f"{row}, {'cold' if index == 0 else 'warm'} run: {run.episodes} episodes in {run.wall_s:.1f} s "
             f"({run.episodes / run.wall_s * 60:,.1f} episodes/min), {run.successes} successful", flush=True))
         results.append(result)
-        print(f"{row}: {result.episodes_per_min:,.1f} episodes/min, oracle success "
+        print(f"{row}: {result.episodes_per_min:,.1f} episodes/min, success "
               f"{result.cold.successes}/{result.cold.episodes}, compile {result.compile_s:.1f} s, "
               f"{evaluation.FULL_EVALUATION:,} episodes in {result.full_evaluation_min:,.1f} min")
         table = evaluation.markdown(results, device, f"on ({cache})")

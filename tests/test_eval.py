@@ -348,3 +348,6 @@ def test_eval_bench_rates_and_projection():
     in_processes = evaluation.bench_config(8, 16, processes=16)
     assert (in_processes.workers, in_processes.processes) == (None, 16)
     assert evaluation.parallelism(in_processes) == "16 processes"
+    trained = evaluation.EvalBenchResult(evaluation.bench_config(8, 16, policy="runs/dp3s"), result.cold, result.warm)
+    text = evaluation.markdown([trained], "gpu (H100)", "on")
+    assert text.startswith("`partinstruct eval --policy runs/dp3s`") and "| 16 | - | 2 threads |" in text

@@ -1,4 +1,5 @@
-"""Evaluation throughput: episodes/minute of `partinstruct eval` (the oracle policy) over the five test splits.
+"""Evaluation throughput: episodes/minute of `partinstruct eval` (the oracle, or a training run's policy) over the
+five test splits.
 
 One cold run (JAX's in-process caches cleared, so it pays for compiling or loading from the persistent cache) and
 `repeats` warm runs of the same evaluation into temporary directories; each run's wall time covers what
@@ -18,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from partinstruct_mjx.eval.config import TEST_SPLITS, EvalConfig
+from partinstruct_mjx.eval.policy import ORACLE
 from partinstruct_mjx.oracle.backtrack import SEGMENT_TRIES
 from partinstruct_mjx.workers import default_workers
 
@@ -61,7 +63,7 @@ class EvalBenchResult:
 
 
 def measure(config: EvalConfig, repeats: int, on_run=None) -> EvalBenchResult:
-    """One cold and `repeats` warm evaluations of the oracle with `config`; `on_run(index, run)` sees each run as it
+    """One cold and `repeats` warm evaluations with `config`; `on_run(index, run)` sees each run as it
     ends (index 0 is the cold one), so a stopped benchmark still shows what it measured."""
     import jax
 
@@ -82,11 +84,20 @@ def measure(config: EvalConfig, repeats: int, on_run=None) -> EvalBenchResult:
 
 
 def bench_config(episodes_per_split: int, batch_size: int, backend: str = "mujoco", threads: int | None = None,
-                 oracle_tries: int | None = None, workers: int | None = None, processes: int = 1) -> EvalConfig:
-    """The oracle on every test split, skill mode, `episodes_per_split` generated episodes each (seed 0)."""
-    return dataclasses.replace(EvalConfig(), splits=TEST_SPLITS, episodes_per_split=episodes_per_split,
+                 oracle_tries: int | None = None, workers: int | None = None, processes: int = 1,
+                 policy: str = ORACLE) -> EvalConfig:
+    """`policy` ('oracle' or a training run directory) on every test split, skill mode, `episodes_per_split`
+    generated episodes each (seed 0)."""
+    return dataclasses.replace(EvalConfig(), policy=policy, splits=TEST_SPLITS, episodes_per_split=episodes_per_split,
                                batch_size=batch_size, backend=backend, num_threads=threads, oracle_tries=oracle_tries,
                                workers=workers, processes=processes)
+
+
+def oracle_tries(config: EvalConfig) -> int | None:
+    """The oracle's tries per grasp or touch in a run of `config`; None for a trained policy."""
+    if config.policy != ORACLE:
+        return None
+    return SEGMENT_TRIES if config.oracle_tries is None else config.oracle_tries
 
 
 def parallelism(config: EvalConfig) -> str:
@@ -103,14 +114,14 @@ def markdown(results: list[EvalBenchResult], device: str, cache: str) -> str:
     for r in results:
         low, high = r.episodes_per_min_range
         successes = r.cold.successes
-        tries = SEGMENT_TRIES if r.config.oracle_tries is None else r.config.oracle_tries
+        tries = oracle_tries(r.config) or "-"
         rows.append(f"| {r.config.batch_size} | {tries} | {parallelism(r.config)} | {r.cold.episodes} | {successes} ({successes / r.cold.episodes:.0%}) | "
                     f"{r.episodes_per_min:,.1f} | {low:,.1f} - {high:,.1f} | "
                     f"{np.median([w.wall_s for w in r.warm]):.1f} | {r.compile_s:.1f} | "
                     f"{r.cold.episodes / r.cold.wall_s * 60:,.1f} | {r.full_evaluation_min:,.1f} |")
     threads = first.num_threads or os.cpu_count() or 1
     return (
-        f"`partinstruct eval --policy oracle` ({first.mode} mode) on {first.episodes_per_split} generated episodes "
+        f"`partinstruct eval --policy {first.policy}` ({first.mode} mode) on {first.episodes_per_split} generated episodes "
         f"of each of {', '.join(first.splits)} (seed {first.seed}), `{first.backend}` backend"
         f"{f' with {threads} physics threads shared by the workers' if first.backend == 'mujoco' else ''}, JAX on {device}; "
         f"JAX persistent "
@@ -118,9 +129,9 @@ def markdown(results: list[EvalBenchResult], device: str, cache: str) -> str:
         f"environment per object and batch size, rollouts to success or the step limit, results files). "
         f"Rates are medians of {len(results[0].warm)} warm run(s); 'compile' is the cold run's wall time (in-process "
         f"JAX caches cleared) minus the warm median. The last column projects {FULL_EVALUATION:,} episodes (the "
-        f"DESIGN.md target: < 10 minutes on one H100) at the warm rate plus the compile once; a trained policy adds "
-        f"its own inference to every step. Worker processes start afresh in every run (imports, tracing), so their "
+        f"DESIGN.md target: < 10 minutes on one H100) at the warm rate plus the compile once"
+        f"{'; a trained policy adds its own inference to every step' if first.policy == ORACLE else ''}. Worker processes start afresh in every run (imports, tracing), so their "
         f"warm runs pay what the threads' cold run does, less the persistent cache's compiles.\n\n"
-        "| batch | oracle tries | workers | episodes | oracle success | episodes/min | range | warm wall s | "
+        "| batch | oracle tries | workers | episodes | success | episodes/min | range | warm wall s | "
         f"compile s | cold episodes/min | {FULL_EVALUATION:,} episodes, min |\n"
         "|---|---|---|---|---|---|---|---|---|---|---|\n" + "\n".join(rows) + "\n")
