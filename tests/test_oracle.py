@@ -724,3 +724,28 @@ def test_a_pinch_on_thin_blades_holds_with_the_contact_split():
             (result,) = run_oracle(env, [episode], jax.random.PRNGKey(0), record=False, tries=1)
             outcomes.append((result.success, result.failed_skill))
     assert outcomes == [(False, 1), (True, -1)]
+
+
+@pytest.mark.slow
+def test_an_episode_no_attempt_solves_reports_its_furthest_attempt():
+    """display_007, test4 type 16 (touch, push, release, grasp, lift, turn, put down): its first attempt pushes and
+    fails the grasp (skill 3); once every try has failed, the last attempt is the touch's sixth try, which passes
+    over its best candidates and fails the touch itself. The episode reports the furthest attempt, which the
+    evaluation's look-ahead then replays (it reported the touch, and evaluation counted a touch failure)."""
+    from partinstruct_mjx.tasks.episodes import Episode
+    from partinstruct_mjx.tasks.skills import SkillStep
+
+    chain = (SkillStep("touch_obj", "left"), SkillStep("move_gripper", None, "right", touching=True),
+             SkillStep("release_obj"), SkillStep("grasp_obj", "front"),
+             SkillStep("move_gripper", None, "top", grasping=True), SkillStep("rotate_obj", "back", "left"),
+             SkillStep("move_gripper", None, "bottom", grasping=True, put_down=True))
+    episode = Episode("display", "display_007", 4000029, 16, "test4", chain, "", ("",) * 7,
+                      (0.0, 0.0, 0.5942122918941292, 0.8043082444945633, -0.04159950515992373, 0.194942454288199,
+                       0.0), 1.0, 3366277851)
+    xml = assets_root() / "objects" / "display" / "display_007" / "object.xml"
+    with PartInstructEnv(xml, 1, EnvConfig(skill_mode=True)) as env:
+        (first,) = run_oracle(env, [episode], jax.random.PRNGKey(0), record=False, tries=1)
+        (searched,) = run_oracle(env, [episode], jax.random.PRNGKey(0), record=False, tries=6)
+    assert (first.success, first.failed_skill) == (False, 3)
+    assert not searched.success and searched.simulated_steps > 5 * first.simulated_steps
+    assert searched.failed_skill == 3 and list(searched.segment_tries[:2]) == [0, 0]

@@ -49,6 +49,12 @@ class Backtracker:
         """(B, S) the try (0 = the first) that stands for each segment so far (`OraclePolicy`'s look-ahead makes
         the same choices in the evaluated env)."""
         self.retreats = np.zeros(batch, np.int32)
+        self.furthest = np.full(batch, -1, np.int32)
+        """(B,) how far the episode's furthest failed attempt so far got (the chain skill it stopped at)."""
+        self.furthest_chosen = np.zeros_like(self.chosen)
+        self.furthest_failed_skill = np.full(batch, -1, np.int32)
+        """That attempt's tries per segment and failed skill: what an episode no attempt solved reports (the last
+        attempt of a segment with its best candidates passed over often fails before the first did)."""
 
     @property
     def saved_steps(self) -> np.ndarray:
@@ -64,6 +70,7 @@ class Backtracker:
         """Scenes where `rows` holds start a new episode (its first segment) now."""
         if rows.any():
             self.retreats = np.where(rows, 0, self.retreats)
+            self.furthest = np.where(rows, -1, self.furthest)
             self.chosen[rows] = 0
             self._begin(rows, np.where(rows, 0, self.segment), state, oracle, np.zeros_like(self.segment))
 
@@ -71,6 +78,7 @@ class Backtracker:
         """Send the `failed` scenes that have tries left back to their segment's start, or, with its tries spent, to
         the previous segment's start (at most RETREATS times an episode). Returns the rows sent back, the new env
         state and machine state (the machine's random key folded with the try's number)."""
+        self._remember_furthest(failed, oracle)
         scenes, segment = np.arange(len(failed)), self.segment
         again = failed & (self.chosen[scenes, segment] + 1 < self.tries)
         back = (failed & ~again & (segment > 0) & (self.retreats < RETREATS)
@@ -90,6 +98,16 @@ class Backtracker:
         state = select_rows(rows, env_state, state.replace(data=None)).replace(data=data)
         tries = self.chosen[scenes, segment]
         return rows, state, select_rows(rows, with_try(saved_oracle, tries), oracle)
+
+    def _remember_furthest(self, failed: np.ndarray, oracle: machine.OracleState) -> None:
+        """Keep the choices of each `failed` attempt that got further along its chain than the episode's others."""
+        failed_skill, skill = np.asarray(oracle.failed_skill), np.asarray(oracle.skill)
+        reached = np.where(failed_skill >= 0, failed_skill,
+                           np.where(skill == machine.DONE, np.asarray(oracle.num_skills), skill))
+        further = failed & (reached > self.furthest)
+        self.furthest = np.where(further, reached, self.furthest)
+        self.furthest_chosen[further] = self.chosen[further]
+        self.furthest_failed_skill = np.where(further, failed_skill, self.furthest_failed_skill)
 
     def _begin(self, rows, segment, state: State, oracle: machine.OracleState, steps) -> None:
         """Save the state of the `rows` scenes as the start of their segment number `segment`, with its first try."""

@@ -48,9 +48,11 @@ class OracleEpisode:
     success: bool
     length: int
     failed_skill: int
-    """Index of the chain skill that failed, -1 if none (a task that ran out of steps has -1 too)."""
+    """Index of the chain skill that failed, -1 if none (a task that ran out of steps has -1 too); for an episode no
+    attempt solved, that of the attempt that got furthest along its chain."""
     segment_tries: np.ndarray
-    """(S,) the try that stood for each grasp or touch segment (0 = the first; backtrack.py)."""
+    """(S,) the try that stood for each grasp or touch segment (0 = the first; backtrack.py); for an episode no
+    attempt solved, the tries of its furthest attempt (which `OraclePolicy`'s look-ahead replays)."""
     simulated_steps: int
     """Steps its scene was simulated for it, the undone tries included."""
     initial_state: np.ndarray | None
@@ -242,8 +244,11 @@ def run_oracle(env: PartInstructEnv, episodes: list, key: jax.Array, record: boo
         search.save(backtrack.segment_starts(before, policy.state) & active & ~now, state, policy.state, length)
         ended = now & ~retried
         for b in np.flatnonzero(ended):
-            yield _episode(int(owner[b]), bool(success[b]), int(length[b]), int(policy.state.failed_skill[b]),
-                           search.chosen[b].copy(), int(simulated[b]), None if initial is None else initial[b].copy(),
+            # An episode no attempt solved reports its furthest attempt: the look-ahead replays that one.
+            failed_skill, tries = ((int(policy.state.failed_skill[b]), search.chosen[b]) if success[b] else
+                                   (int(search.furthest_failed_skill[b]), search.furthest_chosen[b]))
+            yield _episode(int(owner[b]), bool(success[b]), int(length[b]), failed_skill, tries.copy(),
+                           int(simulated[b]), None if initial is None else initial[b].copy(),
                            [frames[n] for n in steps[b]], b)
         owner[ended] = -1
         free = np.flatnonzero(owner < 0)[:len(pending)]
