@@ -2,6 +2,7 @@
 
 import json
 from collections import Counter
+from dataclasses import replace
 
 import jax
 import numpy as np
@@ -279,6 +280,26 @@ def test_policy_replans_every_8_steps_in_the_env(cli_run, demo_dir):
     assert observed == [0, 7, 8, 0], "clouds are rendered only for the 2 observation steps of each prediction"
     with PartInstructEnv(path, 2, EnvConfig(rotation="quat")) as env, pytest.raises(DataError, match="Euler"):
         policy.reset(env, env.reset(key, episodes), key)
+
+
+def test_a_trained_policy_evaluates_the_same_in_worker_processes(cli_run, demo_dir, tmp_path):
+    """`partinstruct eval --policy RUN --processes 2` (each process loads the run's policy; the way the full
+    evaluation ran on one H100 in docs/results.md) gives the records one process gives."""
+    run, args = cli_run
+    if not (run / "config.json").exists():
+        assert main(args) == 0
+    episodes = [replace(e, split="test1") for e in read_metadata(demo_dir.parent / "episodes.json")]
+    write_metadata(episodes, tmp_path / "test1.json")
+    outcomes = []
+    for processes in (1, 2):
+        out = tmp_path / f"processes{processes}"
+        assert main(["eval", "--policy", str(run), "--metadata", str(tmp_path / "test1.json"), "--splits", "test1",
+                     "--batch-size", "2", "--max-steps", "12", "--processes", str(processes), "--out", str(out),
+                     "--quiet"]) == 0
+        results = json.loads((out / "results.json").read_text())
+        assert results["run"]["processes"] == processes and len(results["episodes"]) == 2
+        outcomes.append(results["episodes"])
+    assert outcomes[0] == outcomes[1]
 
 
 @pytest.mark.parametrize("args, message", [
