@@ -44,6 +44,7 @@ def main(argv: list[str] | None = None) -> int:
 
     add_train_parser(commands)
     from partinstruct_mjx.eval.cli import add_eval_parser
+    from partinstruct_mjx.eval.config import ORACLE
 
     add_eval_parser(commands)
 
@@ -57,8 +58,9 @@ def main(argv: list[str] | None = None) -> int:
                     "vs PyBullet doing the same work the original's way, in one run. demos: successful oracle "
                     "demos/hour, episodes/s, env steps/s and the time split of `partinstruct demos` on --episodes "
                     "train episodes (one cold run for the compile overhead, then --repeats warm runs; default 1). eval: "
-                    "episodes/minute of `partinstruct eval --policy oracle` over the five test splits with --episodes "
-                    "per split (cold and warm runs as demos), and the projected time of 1,800 episodes. "
+                    "episodes/minute of `partinstruct eval --policy oracle` (or --policy RUN) over the five test "
+                    "splits with --episodes per split (cold and warm runs as demos), and the projected time of 1,800 "
+                    "episodes. "
                     "mjx: MJX env steps/s of the jitted, vmapped BraxPartInstructEnv step (IK, physics, predicates) "
                     "on the current JAX device per --object and batch size, compile time separate, collision-budget "
                     "variants of the object with the most hulls, and impl='warp' when installed (needs brax).")
@@ -96,7 +98,7 @@ def main(argv: list[str] | None = None) -> int:
     bench.add_argument("--processes", type=int, nargs="+", default=None, metavar="N",
                        help="eval suite: worker processes (`partinstruct eval --processes`) to measure, side by side "
                             "with the --workers threads (default: none)")
-    bench.add_argument("--policy", default="oracle", metavar="POLICY",
+    bench.add_argument("--policy", default=ORACLE, metavar="POLICY",
                        help="eval suite: 'oracle' (default) or a training run directory (`partinstruct train --out`); "
                             "a trained policy's section is kept apart from the oracle's")
     bench.add_argument("--output", type=Path, default=DEFAULT_BENCH_OUTPUT,
@@ -263,7 +265,9 @@ def _bench(args) -> int:
         device = jax.devices()[0].device_kind if gpu else f"CPU, {os.cpu_count()} cores"
         title = f"{args.suite}_{device.lower().replace(' ', '_')}" if gpu else f"{args.suite}_cpu{os.cpu_count()}"
         name = "Demonstration synthesis" if args.suite == "demos" else "Evaluation"
-        if args.suite == "eval" and args.policy != "oracle":
+        from partinstruct_mjx.eval.config import ORACLE
+
+        if args.suite == "eval" and args.policy != ORACLE:
             title, name = f"{title}_trained_policy", "Evaluation of a trained policy"
         heading = f"{name} ({device})"
 

@@ -199,10 +199,9 @@ def test_episode_choice_spreads_over_types_and_categories():
 
 def test_episodes_drawn_in_worker_processes_are_the_same():
     """A process pool draws each category's episodes in one of its processes: the same episodes, in the same order."""
-    import multiprocessing
-    from concurrent.futures import ProcessPoolExecutor
+    from partinstruct_mjx.workers import process_pool
 
-    with ProcessPoolExecutor(2, mp_context=multiprocessing.get_context("spawn")) as pool:
+    with process_pool(2) as pool:
         drawn = select_episodes("test1", 6, categories=["mug", "bottle"], pool=pool)
     assert drawn == select_episodes("test1", 6, categories=["mug", "bottle"])
     assert {e.obj_class for e in drawn} == {"mug", "bottle"}

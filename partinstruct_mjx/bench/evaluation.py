@@ -18,8 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from partinstruct_mjx.eval.config import TEST_SPLITS, EvalConfig
-from partinstruct_mjx.eval.policy import ORACLE
+from partinstruct_mjx.eval.config import ORACLE, TEST_SPLITS, EvalConfig
 from partinstruct_mjx.oracle.backtrack import SEGMENT_TRIES
 from partinstruct_mjx.workers import default_workers
 
@@ -115,23 +114,24 @@ def markdown(results: list[EvalBenchResult], device: str, cache: str) -> str:
         low, high = r.episodes_per_min_range
         successes = r.cold.successes
         tries = oracle_tries(r.config) or "-"
-        rows.append(f"| {r.config.batch_size} | {tries} | {parallelism(r.config)} | {r.cold.episodes} | {successes} ({successes / r.cold.episodes:.0%}) | "
-                    f"{r.episodes_per_min:,.1f} | {low:,.1f} - {high:,.1f} | "
+        rows.append(f"| {r.config.batch_size} | {tries} | {parallelism(r.config)} | {r.cold.episodes} | "
+                    f"{successes} ({successes / r.cold.episodes:.0%}) | {r.episodes_per_min:,.1f} | {low:,.1f} - {high:,.1f} | "
                     f"{np.median([w.wall_s for w in r.warm]):.1f} | {r.compile_s:.1f} | "
                     f"{r.cold.episodes / r.cold.wall_s * 60:,.1f} | {r.full_evaluation_min:,.1f} |")
     threads = first.num_threads or os.cpu_count() or 1
     return (
-        f"`partinstruct eval --policy {first.policy}` ({first.mode} mode) on {first.episodes_per_split} generated episodes "
-        f"of each of {', '.join(first.splits)} (seed {first.seed}), `{first.backend}` backend"
-        f"{f' with {threads} physics threads shared by the workers' if first.backend == 'mujoco' else ''}, JAX on {device}; "
+        f"`partinstruct eval --policy {first.policy}` ({first.mode} mode) on {first.episodes_per_split} generated "
+        f"episodes of each of {', '.join(first.splits)} (seed {first.seed}), `{first.backend}` backend"
+        f"{f' with {threads} physics threads shared by the workers' if first.backend == 'mujoco' else ''}, "
+        f"JAX on {device}; "
         f"JAX persistent "
         f"compilation cache: {cache}. Each run's wall time is the whole evaluation (episode generation, one "
         f"environment per object and batch size, rollouts to success or the step limit, results files). "
         f"Rates are medians of {len(results[0].warm)} warm run(s); 'compile' is the cold run's wall time (in-process "
         f"JAX caches cleared) minus the warm median. The last column projects {FULL_EVALUATION:,} episodes (the "
         f"DESIGN.md target: < 10 minutes on one H100) at the warm rate plus the compile once"
-        f"{'; a trained policy adds its own inference to every step' if first.policy == ORACLE else ''}. Worker processes start afresh in every run (imports, tracing), so their "
-        f"warm runs pay what the threads' cold run does, less the persistent cache's compiles.\n\n"
+        f"{'; a trained policy adds its own inference to every step' if first.policy == ORACLE else ''}. "
+        f"Worker processes start afresh in every run (imports, tracing), so their warm runs pay what the threads' cold run does, less the persistent cache's compiles.\n\n"
         "| batch | oracle tries | workers | episodes | success | episodes/min | range | warm wall s | "
         f"compile s | cold episodes/min | {FULL_EVALUATION:,} episodes, min |\n"
         "|---|---|---|---|---|---|---|---|---|---|---|\n" + "\n".join(rows) + "\n")

@@ -50,8 +50,8 @@ class EvalConfig:
         many-core machine.
       oracle_tries: `--policy oracle` only: tries per grasp or touch in its private look-ahead copy of the env
         (1: the closed-loop oracle alone; None: `oracle.backtrack.SEGMENT_TRIES`).
-    `videos`, `num_threads`, `workers` and `processes` do not change outcomes, so a run directory may be resumed with other
-    values.
+    `videos`, `num_threads`, `workers` and `processes` do not change outcomes, so a run directory may be resumed
+    with other values.
     """
 
     policy: str = ORACLE

@@ -101,6 +101,8 @@ class Backtracker:
 
     def _remember_furthest(self, failed: np.ndarray, oracle: machine.OracleState) -> None:
         """Keep the choices of each `failed` attempt that got further along its chain than the episode's others."""
+        if not failed.any():
+            return
         failed_skill, skill = np.asarray(oracle.failed_skill), np.asarray(oracle.skill)
         reached = np.where(failed_skill >= 0, failed_skill,
                            np.where(skill == machine.DONE, np.asarray(oracle.num_skills), skill))
