@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import itertools
 import os
 import sys
@@ -257,26 +258,11 @@ def _bench(args) -> int:
                          per_core_ratio=list(r.ratio))
                  for (batch, threads), r in ours.items()]
     elif args.suite in ("demos", "eval"):
-        import jax
+        from partinstruct_mjx.workers import gpu_shared
 
-        # Sections are keyed by what JAX ran on: the GPU, or the CPU and its cores (a GPU machine's 16 cores with
-        # JAX_PLATFORMS=cpu are not this 2-core CPU).
-        gpu = jax.default_backend() != "cpu"
-        device = jax.devices()[0].device_kind if gpu else f"CPU, {os.cpu_count()} cores"
-        title = f"{args.suite}_{device.lower().replace(' ', '_')}" if gpu else f"{args.suite}_cpu{os.cpu_count()}"
-        name = "Demonstration synthesis" if args.suite == "demos" else "Evaluation"
-        from partinstruct_mjx.eval.config import ORACLE
-
-        if args.suite == "eval" and args.policy != ORACLE:
-            title, name = f"{title}_trained_policy", "Evaluation of a trained policy"
-        heading = f"{name} ({device})"
-
-        def write(partial_table: str) -> None:
-            """Rewrite the section after every measured row, so a run stopped at a time limit keeps its rows."""
-            if str(args.output) != "-":
-                write_report(args.output, title, heading, partial_table, info, command, data)
-
-        table = _bench_demos(args, write) if args.suite == "demos" else _bench_eval(args, write)
+        # Worker processes share the GPU: JAX in this process (from the device's name on) must not preallocate it.
+        with gpu_shared() if args.suite == "eval" and args.processes else contextlib.nullcontext():
+            title, heading, table = _bench_rollouts(args, info, command)
     elif args.suite == "mjx":
         title, heading, table, data = _bench_mjx(args, info, command)
     else:
@@ -286,6 +272,32 @@ def _bench(args) -> int:
         write_report(args.output, title, heading, table, info, command, data)
         print(f"wrote {args.output}")
     return 0
+
+
+def _bench_rollouts(args, info: dict, command: str) -> tuple[str, str, str]:
+    """Run the demos or eval suite, rewriting its section after every row; returns its title, heading and table."""
+    import jax
+
+    from partinstruct_mjx.bench.report import write_report
+    from partinstruct_mjx.eval.config import ORACLE
+
+    # Sections are keyed by what JAX ran on: the GPU, or the CPU and its cores (a GPU machine's 16 cores with
+    # JAX_PLATFORMS=cpu are not this 2-core CPU).
+    gpu = jax.default_backend() != "cpu"
+    device = jax.devices()[0].device_kind if gpu else f"CPU, {os.cpu_count()} cores"
+    title = f"{args.suite}_{device.lower().replace(' ', '_')}" if gpu else f"{args.suite}_cpu{os.cpu_count()}"
+    name = "Demonstration synthesis" if args.suite == "demos" else "Evaluation"
+    if args.suite == "eval" and args.policy != ORACLE:
+        title, name = f"{title}_trained_policy", "Evaluation of a trained policy"
+    heading = f"{name} ({device})"
+
+    def write(partial_table: str) -> None:
+        """Rewrite the section after every measured row, so a run stopped at a time limit keeps its rows."""
+        if str(args.output) != "-":
+            write_report(args.output, title, heading, partial_table, info, command)
+
+    table = _bench_demos(args, write) if args.suite == "demos" else _bench_eval(args, write)
+    return title, heading, table
 
 
 def _bench_demos(args, on_table) -> str:

@@ -63,22 +63,31 @@ def run_in_threads(items: Iterable, workers: int, work: Callable[[int, object, t
 
 
 @contextmanager
+def gpu_shared() -> Iterator[None]:
+    """Within it, JAX initialised in this process or in processes it spawns does not preallocate GPU memory
+    (PREALLOCATE=false unless set; JAX takes 75 % of the GPU by default), so that several processes share one GPU."""
+    before = os.environ.get(PREALLOCATE)
+    os.environ.setdefault(PREALLOCATE, "false")
+    try:
+        yield
+    finally:
+        if before is None:
+            os.environ.pop(PREALLOCATE, None)
+
+
+@contextmanager
 def process_pool(processes: int) -> Iterator[Executor | None]:
     """`processes` spawned worker processes (None for 1), each with the persistent compilation cache on; they start
-    when the first job is submitted. JAX in them does not preallocate GPU memory (PREALLOCATE=false unless set), so
-    that several share one GPU."""
+    when the first job is submitted. They share the GPU (`gpu_shared`)."""
     if processes == 1:
         yield None
         return
     from partinstruct_mjx.jax_setup import enable_compilation_cache
 
-    before = os.environ.get(PREALLOCATE)
-    os.environ.setdefault(PREALLOCATE, "false")
-    pool = ProcessPoolExecutor(processes, mp_context=multiprocessing.get_context("spawn"),
-                               initializer=enable_compilation_cache)
-    try:
-        yield pool
-    finally:
-        pool.shutdown(wait=True, cancel_futures=True)
-        if before is None:
-            os.environ.pop(PREALLOCATE, None)
+    with gpu_shared():
+        pool = ProcessPoolExecutor(processes, mp_context=multiprocessing.get_context("spawn"),
+                                   initializer=enable_compilation_cache)
+        try:
+            yield pool
+        finally:
+            pool.shutdown(wait=True, cancel_futures=True)

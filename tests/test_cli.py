@@ -62,3 +62,24 @@ def test_bench_demos_keeps_the_rows_of_a_run_stopped_midway(tmp_path, monkeypatc
     assert len(rows) == 1 and rows[0].startswith("| 2 | 1 | 2 |")
     # A CPU run's section names the core count: a GPU machine's cores with JAX on the CPU get a section of their own.
     assert f"<!-- bench:demos_cpu{os.cpu_count()} -->" in report.read_text()
+
+
+def test_bench_eval_with_processes_leaves_the_gpu_to_them(tmp_path, monkeypatch):
+    """The eval suite measuring worker processes runs with JAX's GPU preallocation off in the bench's own process,
+    which names the device before the processes start: preallocating there took 75 % of the GPU from them."""
+    from partinstruct_mjx.bench import evaluation
+    from partinstruct_mjx.workers import PREALLOCATE
+
+    monkeypatch.delenv(PREALLOCATE, raising=False)
+    seen = []
+
+    def measure_and_stop(config, repeats, on_run=None):
+        seen.append((config.processes, os.environ.get(PREALLOCATE)))
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(evaluation, "measure", measure_and_stop)
+    for processes in ([], ["--processes", "2"]):
+        with pytest.raises(KeyboardInterrupt):
+            main(["bench", "eval", "--episodes", "1", *processes, "--output", str(tmp_path / "benchmarks.md")])
+    assert seen == [(1, None), (2, "false")] and PREALLOCATE not in os.environ
+
