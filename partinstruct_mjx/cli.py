@@ -78,7 +78,8 @@ def main(argv: list[str] | None = None) -> int:
     bench.add_argument("--steps", type=int, default=None,
                        help="control steps per timed run (default 200; mjx: env steps per jitted call, default 20)")
     bench.add_argument("--repeats", type=int, default=None,
-                       help="timed runs per batch size (default 5; 1 for demos and eval, whose runs take minutes)")
+                       help="timed runs per batch size (default 5; 1 for demos and eval, whose runs take minutes; "
+                            "eval: 0 times the cold run alone, as for the full evaluation)")
     bench.add_argument("--impls", nargs="+", choices=["jax", "warp"], default=["jax", "warp"],
                        help="mjx suite: MJX implementations to measure (default both; warp needs warp-lang and a "
                             "CUDA GPU). A run of one writes its own section of the output")
@@ -211,6 +212,10 @@ def _bench(args) -> int:
     command = " ".join(["partinstruct", "bench", *sys.argv[2:]]) if sys.argv[1:2] == ["bench"] else "partinstruct bench"
     if args.repeats is None:
         args.repeats = 1 if args.suite in ("demos", "eval") else 5
+    if args.repeats < (0 if args.suite == "eval" else 1):
+        print(f"error: --repeats {args.repeats}: the {args.suite} suite needs at least "
+              f"{0 if args.suite == 'eval' else 1}", file=sys.stderr)
+        return 2
     if args.steps is None:
         args.steps = 20 if args.suite == "mjx" else 200
     info, data = provenance(), None
@@ -353,7 +358,8 @@ def _bench_eval(args, on_table) -> str:
             f"({run.episodes / run.wall_s * 60:,.1f} episodes/min), {run.successes} successful", flush=True))
         results.append(result)
         print(f"{row}: {result.episodes_per_min:,.1f} episodes/min, success "
-              f"{result.cold.successes}/{result.cold.episodes}, compile {result.compile_s:.1f} s, "
+              f"{result.cold.successes}/{result.cold.episodes}, "
+              f"{f'compile {result.compile_s:.1f} s, ' if result.warm else ''}"
               f"{evaluation.FULL_EVALUATION:,} episodes in {result.full_evaluation_min:,.1f} min")
         table = evaluation.markdown(results, device, f"on ({cache})")
         on_table(table)

@@ -83,3 +83,9 @@ def test_bench_eval_with_processes_leaves_the_gpu_to_them(tmp_path, monkeypatch)
             main(["bench", "eval", "--episodes", "1", *processes, "--output", str(tmp_path / "benchmarks.md")])
     assert seen == [(1, None), (2, "false")] and PREALLOCATE not in os.environ
 
+
+def test_bench_times_the_cold_run_alone_only_in_the_eval_suite(tmp_path, capsys):
+    """--repeats 0 (the full evaluation timed once) is the eval suite's; the demos suite needs a warm run."""
+    assert main(["bench", "demos", "--repeats", "0", "--output", str(tmp_path / "benchmarks.md")]) == 2
+    assert "--repeats 0: the demos suite needs at least 1" in capsys.readouterr().err
+    assert not (tmp_path / "benchmarks.md").exists()

@@ -351,3 +351,9 @@ def test_eval_bench_rates_and_projection():
     trained = evaluation.EvalBenchResult(evaluation.bench_config(8, 16, policy="runs/dp3s"), result.cold, result.warm)
     text = evaluation.markdown([trained], "gpu (H100)", "on")
     assert text.startswith("`partinstruct eval --policy runs/dp3s`") and "| 16 | - | 2 threads |" in text
+    # The full evaluation timed once (--repeats 0): the cold run's rate stands and is the projection.
+    full = evaluation.EvalBenchResult(config, evaluation.EvalRun(1800, 1700, 450.0), [])
+    assert full.episodes_per_min == pytest.approx(240.0) and full.full_evaluation_min == pytest.approx(7.5)
+    text = evaluation.markdown([full], "gpu (H100)", "on")
+    assert "| 1800 | 1700 (94%) | 240.0 | 240.0 - 240.0 | 450.0 | - | 240.0 | 7.5 |" in text
+    assert "One cold run each" in text

@@ -4,7 +4,13 @@ five test splits.
 One cold run (JAX's in-process caches cleared, so it pays for compiling or loading from the persistent cache) and
 `repeats` warm runs of the same evaluation into temporary directories; each run's wall time covers what
 `partinstruct eval` does (episode generation, environments, rollouts, results files). Rates are medians of the warm
-runs; the compile overhead is the cold run's wall time minus the warm median.
+runs; the compile overhead is the cold run's wall time minus the warm median. With no warm runs (`repeats` 0: the
+full evaluation's 1,800 episodes take minutes a run) the cold run's rate stands and no compile time is split off.
+
+The projection to 1,800 episodes scales the episodes. A rollout's time goes with its batches (one per object and
+split, each run to its slowest scene), and a trained policy on the GPU costs about the same per batch whatever its
+size, so a small draw (one or two episodes per batch) overstates its full evaluation several times; run the full
+evaluation itself (`--episodes 360 --repeats 0`) for that.
 """
 
 from __future__ import annotations
@@ -39,9 +45,13 @@ class EvalBenchResult:
     cold: EvalRun
     warm: list[EvalRun]
 
+    def _timed(self) -> list[EvalRun]:
+        """The runs the rate comes from: the warm ones, or the cold one alone."""
+        return self.warm or [self.cold]
+
     def _rates(self) -> list[float]:
-        """Episodes/min of each warm run."""
-        return [r.episodes / r.wall_s * 60 for r in self.warm]
+        """Episodes/min of each timed run."""
+        return [r.episodes / r.wall_s * 60 for r in self._timed()]
 
     @property
     def episodes_per_min(self) -> float:
@@ -53,7 +63,12 @@ class EvalBenchResult:
 
     @property
     def compile_s(self) -> float:
-        return self.cold.wall_s - float(np.median([r.wall_s for r in self.warm]))
+        return self.cold.wall_s - self.wall_s
+
+    @property
+    def wall_s(self) -> float:
+        """Median wall time of the timed runs."""
+        return float(np.median([r.wall_s for r in self._timed()]))
 
     @property
     def full_evaluation_min(self) -> float:
@@ -107,6 +122,14 @@ def parallelism(config: EvalConfig) -> str:
     return f"{threads} thread{'s' if threads > 1 else ''}"
 
 
+def _timing(warm_runs: int) -> str:
+    """How the table's rate and compile time were taken."""
+    if not warm_runs:
+        return "One cold run each (in-process JAX caches cleared): its rate stands; no compile time is split off."
+    return (f"Rates are medians of {warm_runs} warm run(s); 'compile' is the cold run's wall time (in-process JAX "
+            f"caches cleared) minus the warm median.")
+
+
 def markdown(results: list[EvalBenchResult], device: str, cache: str) -> str:
     first = results[0].config
     rows = []
@@ -116,7 +139,7 @@ def markdown(results: list[EvalBenchResult], device: str, cache: str) -> str:
         tries = oracle_tries(r.config) or "-"
         rows.append(f"| {r.config.batch_size} | {tries} | {parallelism(r.config)} | {r.cold.episodes} | "
                     f"{successes} ({successes / r.cold.episodes:.0%}) | {r.episodes_per_min:,.1f} | {low:,.1f} - {high:,.1f} | "
-                    f"{np.median([w.wall_s for w in r.warm]):.1f} | {r.compile_s:.1f} | "
+                    f"{r.wall_s:.1f} | {f'{r.compile_s:.1f}' if r.warm else '-'} | "
                     f"{r.cold.episodes / r.cold.wall_s * 60:,.1f} | {r.full_evaluation_min:,.1f} |")
     threads = first.num_threads or os.cpu_count() or 1
     return (
@@ -127,11 +150,13 @@ def markdown(results: list[EvalBenchResult], device: str, cache: str) -> str:
         f"JAX persistent "
         f"compilation cache: {cache}. Each run's wall time is the whole evaluation (episode generation, one "
         f"environment per object and batch size, rollouts to success or the step limit, results files). "
-        f"Rates are medians of {len(results[0].warm)} warm run(s); 'compile' is the cold run's wall time (in-process "
-        f"JAX caches cleared) minus the warm median. The last column projects {FULL_EVALUATION:,} episodes (the "
-        f"DESIGN.md target: < 10 minutes on one H100) at the warm rate plus the compile once"
+        f"{_timing(len(results[0].warm))} The last column projects {FULL_EVALUATION:,} episodes (the "
+        f"DESIGN.md target: < 10 minutes on one H100) at that rate plus the compile once"
         f"{'; a trained policy adds its own inference to every step' if first.policy == ORACLE else ''}. "
-        f"Worker processes start afresh in every run (imports, tracing), so their warm runs pay what the threads' cold run does, less the persistent cache's compiles.\n\n"
-        "| batch | oracle tries | workers | episodes | success | episodes/min | range | warm wall s | "
+        f"Worker processes start afresh in every run (imports, tracing), so their warm runs pay what the threads' cold "
+        f"run does, less the persistent cache's compiles. A run's time goes with its batches (one per object and "
+        f"split) more than with its episodes, so the projection from a small draw overstates a trained policy's full "
+        f"evaluation (run it with --episodes 360 --repeats 0).\n\n"
+        "| batch | oracle tries | workers | episodes | success | episodes/min | range | wall s | "
         f"compile s | cold episodes/min | {FULL_EVALUATION:,} episodes, min |\n"
         "|---|---|---|---|---|---|---|---|---|---|---|\n" + "\n".join(rows) + "\n")
