@@ -159,7 +159,7 @@ class PartInstructEnv:
         task = _initial(data.for_jit(), self.geometry, compiled)
         limits = np.array([step_limit(e.split) for e in episodes], np.int32)
         info = {"steps": jnp.zeros(self.batch_size, jnp.int32), "step_limit": jnp.asarray(limits),
-                "truncated": jnp.zeros(self.batch_size, bool),
+                "truncated": jnp.zeros(self.batch_size, bool), "unstable": jnp.zeros(self.batch_size, bool),
                 "joint_targets": jnp.asarray(data.arm_qpos, jnp.float32)}
         if old is not None:
             task, info = select_rows(rows, (task, info), (old.task, old.info))
@@ -182,7 +182,7 @@ class PartInstructEnv:
         else:
             data = self.backend.step(ctrl)
         changed, info, outputs = _advance(state.task, state.info, state.done, data.for_jit(), self.geometry, ctrl,
-                                          self.config.skill_mode)
+                                          self.backend.unstable(), self.config.skill_mode)
         return _assemble(data, state.task.replace(**changed), {**state.info, **info}, outputs)
 
     def instructions(self, state: State) -> list[str]:
@@ -238,13 +238,18 @@ def _initial(data: SceneState | HostBlock, geometry, compiled: dict) -> progress
 
 
 @jax.jit(static_argnames="skill_mode")
-def _advance(task, info: dict, done, data: SceneState | HostBlock, geometry, ctrl, skill_mode: bool):
+def _advance(task, info: dict, done, data: SceneState | HostBlock, geometry, ctrl, unstable, skill_mode: bool):
     """Everything of a step after physics in one dispatch. Returns only what changes (every returned array costs
-    time at batch 1): the `progress.PROGRESS_FIELDS` of the task, the changed info and `_outputs`."""
+    time at batch 1): the `progress.PROGRESS_FIELDS` of the task, the changed info and `_outputs`.
+
+    A scene whose simulation diverged (`unstable`, the backend's) ends without success, truncated, and stays so."""
     data = unpacked(data)
     task = progress.update(task, data, geometry, skill_mode=skill_mode)
+    unstable = info["unstable"] | unstable
+    task = task.replace(success=task.success & ~unstable)
     steps = info["steps"] + ~done
-    info = {"steps": steps, "truncated": ~task.success & (steps >= info["step_limit"]), "joint_targets": ctrl[:, :7]}
+    info = {"steps": steps, "truncated": ~task.success & (steps >= info["step_limit"]) | unstable,
+            "unstable": unstable, "joint_targets": ctrl[:, :7]}
     changed = {name: getattr(task, name) for name in progress.PROGRESS_FIELDS}
     return changed, info, _outputs(data, task, info)
 

@@ -19,7 +19,8 @@ class PartInstructGymEnv(gym.Env):
 
     Observations: tcp_pose [qx, qy, qz, qw, x, y, z], joint_states (7), gripper_state (1), instruction_index.
     Actions: x, y, z, roll, pitch, yaw (extrinsic 'xyz'), finger opening in metres (0 ... 0.04).
-    `terminated` is success; `truncated` is the step limit (250, 400 for test4). `info["instruction"]` is the
+    `terminated` is success; `truncated` is the step limit (250, 400 for test4) or a diverged simulation
+    (`PartInstructEnv`'s `info["unstable"]`). `info["instruction"]` is the
     instruction the policy should follow now.
     """
 

@@ -100,6 +100,24 @@ def test_step_limits_and_truncation():
         assert list(np.asarray(state.done)) == [True, True] and np.asarray(state.info["truncated"]).all()
 
 
+def test_a_diverged_simulation_ends_its_episode_without_success(env):
+    """MuJoCo resets a scene whose simulation diverges; the env ends that episode, failed, until the scene is reset,
+    and a restored snapshot (the oracle's backtracking) is stable again."""
+    state = env.reset(jax.random.PRNGKey(0), [_episode(), _episode()])
+    physics = env.backend.get_physics_state()
+    broken = physics.copy()
+    broken[1, 1 + env.backend.model.nq] = np.nan  # scene 1's first joint velocity (the state starts with time, qpos)
+    env.backend.set_physics_state(broken, np.array([False, True]))
+    state = env.step(state, _hold(state))
+    assert list(np.asarray(state.info["unstable"])) == [False, True]
+    assert list(np.asarray(state.done)) == [False, True] and np.asarray(state.info["truncated"])[1]
+    assert not np.asarray(state.task.success)[1] and np.isfinite(np.asarray(state.data.qpos)).all()
+    env.backend.restore(physics, np.array([False, True]))
+    assert not env.backend.unstable().any()
+    state = env.reset_rows(state, jax.random.PRNGKey(0), np.array([False, True]), [_episode()])
+    assert not np.asarray(env.step(state, _hold(state)).info["unstable"]).any()
+
+
 def test_bad_input_raises_clear_errors(env):
     with pytest.raises(TaskError, match="reset needs 2 episodes, got 1"):
         env.reset(jax.random.PRNGKey(0), [_episode()])

@@ -26,7 +26,7 @@ MAX_STEPS = 60
 RECORD_FIELDS = {"split": str, "category": str, "obj_id": str, "ep_id": int, "task_type": int, "success": bool,
                  "completion": float, "steps": int, "step_limit": int, "stopped_skill": (str, type(None)),
                  "skills": list, "skill_success": list, "target_parts": list, "task_instruction": str,
-                 "video": (str, type(None))}
+                 "video": (str, type(None)), "physics_unstable": bool}
 
 
 @pytest.fixture(scope="module")
@@ -131,7 +131,7 @@ def test_per_skill_counts_only_the_skills_an_episode_reached(run_dir):
     template = json.loads((run_dir / "results.json").read_text())["episodes"][0]
     chain = ["grasp_obj", "move_gripper", "release_obj"]
     records = [template | {"ep_id": 0, "skills": chain, "skill_success": [True, False, False], "success": False,
-                           "target_parts": ["handle", ""]},
+                           "target_parts": ["handle", ""], "physics_unstable": True},
                template | {"ep_id": 1, "skills": chain, "skill_success": [True, True, True], "success": True,
                            "target_parts": ["top"]}]
     summary = aggregate(records)
@@ -144,6 +144,7 @@ def test_per_skill_counts_only_the_skills_an_episode_reached(run_dir):
                                "label": "x", "complete": True, "resolved": {"step_limits": {"test1": 250}},
                                "provenance": {"date": "d", "git_sha": "s", "machine": "m"}})
     assert "| move_gripper | 2 | 1 | 50.00 |" in report
+    assert summary["physics_unstable"] == 1 and "- 1 episodes ended early, failed, because their simulation" in report
 
 
 def test_rerun_resumes_and_other_settings_are_refused(metadata, run_dir, capsys):

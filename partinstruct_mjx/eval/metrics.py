@@ -54,6 +54,7 @@ def aggregate(records: list[dict], splits: list[str] | None = None) -> dict:
                 by_skill[name][1] += bool(done)
     return {
         "overall": rates(records),
+        "physics_unstable": sum(bool(r.get("physics_unstable")) for r in records),
         "per_split": per_split,
         "mean_over_splits": {key: sum(v[key] for v in evaluated) / len(evaluated) if evaluated else None
                              for key in ("success_rate", "completion_rate")},
@@ -117,7 +118,10 @@ def results_markdown(results: dict) -> str:
         + f"; {config['mode']} mode; backend {config['backend']}; seed {config['seed']}",
         f"- episodes: {summary['overall']['episodes']}" + ("" if results["complete"] else " (run not complete)")
         + f"; step limits: {', '.join(f'{s} {n}' for s, n in results['resolved']['step_limits'].items())}",
-        f"- {provenance['date']}, commit {provenance['git_sha']}, {provenance['machine']}", "",
+        f"- {provenance['date']}, commit {provenance['git_sha']}, {provenance['machine']}",
+        *([f"- {summary['physics_unstable']} episodes ended early, failed, because their simulation diverged "
+           "(MuJoCo's bad-value warnings; `physics_unstable` in results.json)"] if summary.get("physics_unstable") else []),
+        "",
         "## Success rate (%) ± standard error", "", success_table(summary, splits, results["label"]), "",
         f"Mean of the split rates: success {percent(mean['success_rate'])} %, completion "
         f"{percent(mean['completion_rate'])} %.", "",

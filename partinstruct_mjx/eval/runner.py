@@ -237,7 +237,7 @@ def _run_batch(env, batch: list[Episode], policy: Policy, planner: Planner | Non
     if config.max_steps is not None:
         horizon = np.minimum(horizon, config.max_steps)
     ended = np.arange(size) >= real  # the rows that pad the batch are not simulated
-    success, completion = np.zeros(size, bool), np.zeros(size)
+    success, unstable, completion = np.zeros(size, bool), np.zeros(size, bool), np.zeros(size)
     steps, skill_at = np.zeros(size, int), np.zeros(size, int)
     films = {b: _Film(batch[b], b, state, skills.index(state)[b]) for b in range(real) if batch[b].ep_id in filmed}
     instructions = None
@@ -258,13 +258,14 @@ def _run_batch(env, batch: list[Episode], policy: Policy, planner: Planner | Non
                 film.add(state, index[b])
         if now.any():
             success[now] = np.asarray(state.task.success)[now]
+            unstable[now] = np.asarray(state.info["unstable"])[now]
             completion[now] = np.asarray(state.task.completion)[now]
             steps[now], skill_at[now] = t + 1, index[now]
             ended |= now
         if ended.all():
             break
     records = [_record(batch[b], bool(success[b]), float(completion[b]), int(steps[b]), int(horizon[b]),
-                       int(skill_at[b])) for b in range(real)]
+                       int(skill_at[b]), bool(unstable[b])) for b in range(real)]
     for b, film in films.items():
         with _RENDER_LOCK:
             records[b]["video"] = film.render(env, out_dir, records[b])
@@ -304,13 +305,15 @@ class _Film:
         return name
 
 
-def _record(episode: Episode, success: bool, completion: float, steps: int, horizon: int, skill_at: int) -> dict:
-    """One episode's outcome: what results.json stores per episode."""
+def _record(episode: Episode, success: bool, completion: float, steps: int, horizon: int, skill_at: int,
+            unstable: bool) -> dict:
+    """One episode's outcome: what results.json stores per episode. `physics_unstable`: the episode ended early,
+    without success, because its simulation diverged (MuJoCo's bad-value warnings)."""
     chain = episode.chain
     skill_at = min(skill_at, len(chain))
     return {"split": episode.split, "category": category_slug(episode.obj_class), "obj_id": episode.obj_id,
             "ep_id": episode.ep_id, "task_type": episode.task_type, "success": success,
-            "completion": round(completion, 6), "steps": steps, "step_limit": horizon,
+            "completion": round(completion, 6), "steps": steps, "step_limit": horizon, "physics_unstable": unstable,
             "stopped_skill": chain[skill_at].name if skill_at < len(chain) else None,
             "skills": [step.name for step in chain], "skill_success": [i < skill_at for i in range(len(chain))],
             "target_parts": [step.part for step in chain if step.part is not None],

@@ -58,6 +58,10 @@ class MjxBackend:
         self.data = _step(self.model, self.data, ctrl, self.scene.config.substeps)
         return _extract(self.model, self.data, self._indices)
 
+    def unstable(self) -> jnp.ndarray:
+        """(B,) bool: the simulation diverged (a NaN or infinite joint position or velocity)."""
+        return _diverged(self.data.qpos, self.data.qvel)
+
     def snapshot(self) -> mjx.Data:
         """The whole batch's physics state, for `restore` (MJX data is immutable: the snapshot is the data)."""
         return self.data
@@ -66,6 +70,11 @@ class MjxBackend:
         """Put the environments where the (B,) mask `rows` holds back to `snapshot`; the others go on unchanged."""
         self.data = select_rows(np.asarray(rows), snapshot, self.data)
         return _extract(self.model, self.data, self._indices)
+
+
+@jax.jit
+def _diverged(qpos, qvel) -> jnp.ndarray:
+    return ~(jnp.isfinite(qpos).all(axis=-1) & jnp.isfinite(qvel).all(axis=-1))
 
 
 def scene_indices(scene: Scene) -> dict:

@@ -23,6 +23,9 @@ DROP_CLEARANCE = 0.005
 """Height of the object's lowest point above the table when it is released at reset."""
 
 _PHYSICS_STATE = mujoco.mjtState.mjSTATE_INTEGRATION
+_BAD_VALUE_WARNINGS = (mujoco.mjtWarning.mjWARN_BADQPOS, mujoco.mjtWarning.mjWARN_BADQVEL,
+                       mujoco.mjtWarning.mjWARN_BADQACC)
+"""MuJoCo's warnings of a diverged simulation, after which it resets the MjData to the model's defaults."""
 
 
 class MujocoBackend:
@@ -42,6 +45,7 @@ class MujocoBackend:
         self._state = empty_scene_state(batch_size, m.nq, m.nv, m.nbody)
         self._ctrl = np.tile(panda.HOME_CTRL, (batch_size, 1))
         self._force6 = [np.zeros(6) for _ in range(batch_size)]
+        self._unstable = np.zeros(batch_size, bool)
         self._split = scene.config.contact_split
         self._fine_model = copy.copy(self.model)
         self._fine_model.opt.timestep = self.model.opt.timestep / self._split
@@ -116,10 +120,17 @@ class MujocoBackend:
             raise SceneError(f"physics states must have shape ({self.batch_size}, {size}), got {states.shape}")
         for i in range(self.batch_size) if rows is None else np.flatnonzero(rows):
             data = self.datas[i]
+            for warning in _BAD_VALUE_WARNINGS:
+                data.warning[warning].number = 0
             mujoco.mj_setState(self.model, data, states[i], _PHYSICS_STATE)
             mujoco.mj_forward(self.model, data)
             self._ctrl[i] = data.ctrl
         return self._run(self._extract_chunk)
+
+    def unstable(self) -> np.ndarray:
+        """(B,) bool: the simulation diverged (NaN or huge values) since the scene's reset or restore. MuJoCo then
+        warns and resets the scene's MjData to the model's defaults, so what follows is not the episode's physics."""
+        return self._unstable.copy()
 
     def snapshot(self) -> np.ndarray:
         """The whole batch's physics state, for `restore` (the same as `get_physics_state`)."""
@@ -177,6 +188,7 @@ class MujocoBackend:
         out.object_quat[i] = data.xquat[scene.object_body]
         out.body_pos[i, : self.model.nbody] = data.xpos
         out.body_quat[i, : self.model.nbody] = data.xquat
+        self._unstable[i] = any(data.warning[warning].number for warning in _BAD_VALUE_WARNINGS)
         self._extract_finger_contacts(i)
 
     def _extract_finger_contacts(self, i: int) -> None:
