@@ -44,10 +44,11 @@ def main(argv: list[str] | None = None) -> int:
     from partinstruct_mjx.train.cli import add_train_parser
 
     add_train_parser(commands)
-    from partinstruct_mjx.eval.cli import add_eval_parser
+    from partinstruct_mjx.eval.cli import add_compare_parser, add_eval_parser
     from partinstruct_mjx.eval.config import ORACLE
 
     add_eval_parser(commands)
+    add_compare_parser(commands)
 
     bench = commands.add_parser(
         "bench", help="measure speed (CPU backend, conversion) and write docs/benchmarks.md",

@@ -16,6 +16,7 @@ from partinstruct_mjx.cli import main
 from partinstruct_mjx.data.synthesis import select_episodes
 from partinstruct_mjx.env import EnvConfig, PartInstructEnv, hold_action
 from partinstruct_mjx.eval import EvalConfig, EvalError, aggregate, evaluate
+from partinstruct_mjx.eval.compare import mcnemar_p
 from partinstruct_mjx.eval.metrics import mean_se, percent, results_markdown, success_table
 from partinstruct_mjx.eval.planner import OraclePlanner
 from partinstruct_mjx.eval.runner import select_eval_episodes
@@ -145,6 +146,41 @@ def test_per_skill_counts_only_the_skills_an_episode_reached(run_dir):
                                "provenance": {"date": "d", "git_sha": "s", "machine": "m"}})
     assert "| move_gripper | 2 | 1 | 50.00 |" in report
     assert summary["physics_unstable"] == 1 and "- 1 episodes ended early, failed, because their simulation" in report
+
+
+def test_compare_pairs_two_runs_episode_by_episode(run_dir, tmp_path, capsys):
+    """`partinstruct compare A B`: the episodes B gained and lost against A, with the exact McNemar p-value."""
+    results = json.loads((run_dir / "results.json").read_text())
+    template = results["episodes"][0]
+    first = [template | {"ep_id": i, "split": "test1" if i < 20 else "test2", "success": i % 2 == 0}
+             for i in range(30)]
+    flipped = {1, 3, 5, 7, 21, 2}  # odd ids failed in A: 5 gained; 2 succeeded: 1 lost
+    second = [r | {"success": not r["success"]} if r["ep_id"] in flipped else r for r in first]
+
+    def write(name, records, **changes):
+        path = tmp_path / name
+        path.mkdir()
+        (path / "results.json").write_text(json.dumps(results | {"episodes": records} | changes))
+        return path
+
+    a, b = write("a", first), write("b", second + [template | {"ep_id": 99}])
+    capsys.readouterr()
+    assert main(["compare", str(a), str(b), "--json", str(tmp_path / "c.json")]) == 0
+    out = capsys.readouterr().out
+    assert "30 episodes in both runs (0 only in A, 1 only in B, left out); B - A: +4 successes (5 gained, 1 lost, " \
+           "p = 0.219)" in out
+    assert "| Test 2 (OI) | 10 | 5 | 6 | 1 | 0 | 1 |" in out and "| test1 | 2 | mug_" in out
+    comparison = json.loads((tmp_path / "c.json").read_text())
+    assert comparison["overall"]["p_value"] == pytest.approx(14 / 64) and len(comparison["changed"]) == 6
+    assert mcnemar_p(6, 9) == pytest.approx(9949 / 2 ** 14) and mcnemar_p(0, 0) == 1.0
+    other = write("other", [r | {"obj_id": "mug_999"} if r["ep_id"] == 4 else r for r in second])
+    assert main(["compare", str(a), str(other)]) == 2
+    assert "episode 4 of test1 is not the same in both runs (obj_id" in capsys.readouterr().err
+    task_mode = write("task", first, config=results["config"] | {"mode": "task"})
+    assert main(["compare", str(a), str(task_mode)]) == 2
+    assert "judge success differently" in capsys.readouterr().err
+    assert main(["compare", str(a), str(tmp_path / "missing")]) == 2
+    assert "no evaluation results at" in capsys.readouterr().err
 
 
 def test_rerun_resumes_and_other_settings_are_refused(metadata, run_dir, capsys):

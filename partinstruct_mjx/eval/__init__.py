@@ -15,6 +15,7 @@ _PUBLIC = {
     "OraclePlanner": "partinstruct_mjx.eval.planner",
     "evaluate": "partinstruct_mjx.eval.runner",
     "aggregate": "partinstruct_mjx.eval.metrics",
+    "compare": "partinstruct_mjx.eval.compare",
 }
 __all__ = sorted(_PUBLIC)
 

@@ -142,3 +142,39 @@ def run_eval(args: argparse.Namespace) -> int:
     print(f"\n{run['episodes_run']} episodes run in {run['wall_s']:.0f} s, {run['resumed_episodes']} resumed; "
           f"wrote {args.out / RESULTS} and {args.out / REPORT}")
     return 0
+
+
+def add_compare_parser(subparsers) -> argparse.ArgumentParser:
+    """Register the `compare` subcommand: two evaluation runs, episode by episode."""
+    parser = subparsers.add_parser(
+        "compare", help="compare two evaluation runs on the same episodes: gained, lost, exact McNemar p",
+        description=textwrap.fill(
+            "Compare two `partinstruct eval` runs (two policies, or two versions of one) on the episodes both ran "
+            "(same --seed or --metadata): the successes of each, the episodes B gained and lost against A, and the "
+            "two-sided exact McNemar p-value of that split (the chance of one at least as uneven if the two did "
+            "equally well), overall, per split and per task type, then the changed episodes.", 100))
+    parser.add_argument("a", type=Path, metavar="A", help="the first run's directory (or its results.json)")
+    parser.add_argument("b", type=Path, metavar="B", help="the second run's directory (or its results.json)")
+    parser.add_argument("--list", type=int, default=20, metavar="N",
+                        help="changed episodes to list (default 20)")
+    parser.add_argument("--json", type=Path, default=None, metavar="FILE", help="also write the comparison as JSON")
+    parser.set_defaults(func=run_compare)
+    return parser
+
+
+def run_compare(args: argparse.Namespace) -> int:
+    """Print the comparison; project errors reach the main command, which exits 2."""
+    import json
+
+    from partinstruct_mjx.atomic import atomic_write
+    from partinstruct_mjx.eval.compare import compare, comparison_markdown, load_results
+
+    a, b = load_results(args.a), load_results(args.b)
+    comparison = compare(a, b)
+    labels = [f"{path} ({run['label']}{'' if run['complete'] else ', run not complete'})"
+              for path, run in ((args.a, a), (args.b, b))]
+    print(comparison_markdown(comparison, *labels, args.list))
+    if args.json is not None:
+        with atomic_write(args.json) as file:
+            json.dump(comparison, file, indent=1)
+    return 0

@@ -80,7 +80,7 @@ def percent(rate: float | None, se: float | None = None) -> str:
     return f"{100 * rate:.2f}" + ("" if se is None else f" ± {100 * se:.1f}")
 
 
-def _table(header: list[str], rows: list[list[str]]) -> str:
+def markdown_table(header: list[str], rows: list[list[str]]) -> str:
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     return "\n".join(lines + ["| " + " | ".join(row) + " |" for row in rows])
 
@@ -89,7 +89,7 @@ def success_table(summary: dict, splits: list[str], label: str) -> str:
     """The paper's Table 1 layout: one row, success rate ± standard error per split and All (pooled)."""
     cells = [percent(summary["per_split"][s]["success_rate"], summary["per_split"][s]["success_se"]) for s in splits]
     overall = summary["overall"]
-    return _table(["Policy", *(SPLIT_TITLES[s] for s in splits), "All"],
+    return markdown_table(["Policy", *(SPLIT_TITLES[s] for s in splits), "All"],
                   [[label, *cells, percent(overall["success_rate"], overall["success_se"])]])
 
 
@@ -97,7 +97,7 @@ def split_table(summary: dict, splits: list[str]) -> str:
     """Per split: episodes, successes, success and completion rates with standard errors."""
     rows = [[SPLIT_TITLES[s], *_counts(summary["per_split"][s])] for s in splits]
     rows.append(["All", *_counts(summary["overall"])])
-    return _table(["split", "episodes", "successes", "success %", "completion %"], rows)
+    return markdown_table(["split", "episodes", "successes", "success %", "completion %"], rows)
 
 
 def _counts(entry: dict) -> list[str]:
@@ -127,17 +127,17 @@ def results_markdown(results: dict) -> str:
         f"{percent(mean['completion_rate'])} %.", "",
         "## Per split", "", split_table(summary, splits), "",
         "## Per task type", "",
-        _table(["type", "episodes", "successes", "success %", "completion %"],
+        markdown_table(["type", "episodes", "successes", "success %", "completion %"],
                [[t, *_counts(e)] for t, e in summary["per_task_type"].items()]), "",
         "## Per skill (of the chain skills reached, the share completed)", "",
-        _table(["skill", "reached", "completed", "success %"],
+        markdown_table(["skill", "reached", "completed", "success %"],
                [[name, str(e["reached"]), str(e["completed"]), percent(e["success_rate"])]
                 for name, e in summary["per_skill"].items()]), "",
         "## Per target part (episodes whose chain names the part)", "",
-        _table(["part", "episodes", "successes", "success %", "completion %"],
+        markdown_table(["part", "episodes", "successes", "success %", "completion %"],
                [[p, *_counts(e)] for p, e in summary["per_part"].items()]), "",
         "## Per category", "",
-        _table(["category", "episodes", "successes", "success %", "completion %"],
+        markdown_table(["category", "episodes", "successes", "success %", "completion %"],
                [[c, *_counts(e)] for c, e in summary["per_category"].items()]), "",
     ]
     return "\n".join(lines)
