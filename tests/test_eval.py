@@ -181,6 +181,9 @@ def test_compare_pairs_two_runs_episode_by_episode(run_dir, tmp_path, capsys):
     assert "judge success differently" in capsys.readouterr().err
     assert main(["compare", str(a), str(tmp_path / "missing")]) == 2
     assert "no evaluation results at" in capsys.readouterr().err
+    (tmp_path / "other.json").write_text("{}")
+    assert main(["compare", str(a), str(tmp_path / "other.json")]) == 2
+    assert "other.json is not a `partinstruct eval` results.json" in capsys.readouterr().err
 
 
 def test_rerun_resumes_and_other_settings_are_refused(metadata, run_dir, capsys):

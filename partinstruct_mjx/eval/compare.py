@@ -28,9 +28,10 @@ def load_results(path: str | Path) -> dict:
         raise EvalError(f"no evaluation results at {file} (expected a `partinstruct eval --out` directory)")
     try:
         results = json.loads(file.read_text())
-        results["episodes"], results["config"]["mode"]
-    except (json.JSONDecodeError, KeyError, TypeError) as error:
+    except json.JSONDecodeError as error:
         raise EvalError(f"{file} is not a `partinstruct eval` results.json ({error})") from None
+    if not isinstance(results, dict) or not {"episodes", "config", "label", "complete"} <= set(results):
+        raise EvalError(f"{file} is not a `partinstruct eval` results.json (no episodes, config, label or complete)")
     return results
 
 

@@ -90,7 +90,7 @@ def success_table(summary: dict, splits: list[str], label: str) -> str:
     cells = [percent(summary["per_split"][s]["success_rate"], summary["per_split"][s]["success_se"]) for s in splits]
     overall = summary["overall"]
     return markdown_table(["Policy", *(SPLIT_TITLES[s] for s in splits), "All"],
-                  [[label, *cells, percent(overall["success_rate"], overall["success_se"])]])
+                          [[label, *cells, percent(overall["success_rate"], overall["success_se"])]])
 
 
 def split_table(summary: dict, splits: list[str]) -> str:
@@ -120,7 +120,8 @@ def results_markdown(results: dict) -> str:
         + f"; step limits: {', '.join(f'{s} {n}' for s, n in results['resolved']['step_limits'].items())}",
         f"- {provenance['date']}, commit {provenance['git_sha']}, {provenance['machine']}",
         *([f"- {summary['physics_unstable']} episodes ended early, failed, because their simulation diverged "
-           "(MuJoCo's bad-value warnings; `physics_unstable` in results.json)"] if summary.get("physics_unstable") else []),
+           "(MuJoCo's bad-value warnings; `physics_unstable` in results.json)"]
+          if summary.get("physics_unstable") else []),
         "",
         "## Success rate (%) ± standard error", "", success_table(summary, splits, results["label"]), "",
         f"Mean of the split rates: success {percent(mean['success_rate'])} %, completion "
@@ -128,16 +129,16 @@ def results_markdown(results: dict) -> str:
         "## Per split", "", split_table(summary, splits), "",
         "## Per task type", "",
         markdown_table(["type", "episodes", "successes", "success %", "completion %"],
-               [[t, *_counts(e)] for t, e in summary["per_task_type"].items()]), "",
+                       [[t, *_counts(e)] for t, e in summary["per_task_type"].items()]), "",
         "## Per skill (of the chain skills reached, the share completed)", "",
         markdown_table(["skill", "reached", "completed", "success %"],
-               [[name, str(e["reached"]), str(e["completed"]), percent(e["success_rate"])]
-                for name, e in summary["per_skill"].items()]), "",
+                       [[name, str(e["reached"]), str(e["completed"]), percent(e["success_rate"])]
+                        for name, e in summary["per_skill"].items()]), "",
         "## Per target part (episodes whose chain names the part)", "",
         markdown_table(["part", "episodes", "successes", "success %", "completion %"],
-               [[p, *_counts(e)] for p, e in summary["per_part"].items()]), "",
+                       [[p, *_counts(e)] for p, e in summary["per_part"].items()]), "",
         "## Per category", "",
         markdown_table(["category", "episodes", "successes", "success %", "completion %"],
-               [[c, *_counts(e)] for c, e in summary["per_category"].items()]), "",
+                       [[c, *_counts(e)] for c, e in summary["per_category"].items()]), "",
     ]
     return "\n".join(lines)
