@@ -87,8 +87,8 @@ def main(argv: list[str] | None = None) -> int:
     bench.add_argument("--no-variants", action="store_true",
                        help="mjx suite: skip the collision- and solver-budget variants (each compiles for a minute)")
     bench.add_argument("--episodes", type=int, default=None,
-                       help="demos suite: train episodes per run (default 64); eval suite: episodes per test split "
-                            "(default 8)")
+                       help="demos suite: train episodes per run (default 256, 128 on each of two objects); eval "
+                            "suite: episodes per test split (default 8)")
     bench.add_argument("--backend", choices=["mujoco", "mjx"], default="mujoco",
                        help="demos and eval suites: physics backend (default mujoco; mjx on a GPU)")
     bench.add_argument("--threads", type=int, default=None, help="worker threads/processes (default: all cores)")
@@ -317,7 +317,7 @@ def _bench_demos(args, on_table) -> str:
     from partinstruct_mjx.workers import default_workers
 
     cache = enable_compilation_cache()
-    episodes = demos.bench_episodes(args.episodes or 64)
+    episodes = demos.bench_episodes(args.episodes or demos.DEFAULT_EPISODES)
     device = f"{jax.default_backend()} ({jax.devices()[0].device_kind})"
     results = []
     for batch, tries, workers in itertools.product(args.batch_sizes or [16], args.oracle_tries or [SEGMENT_TRIES],

@@ -19,6 +19,9 @@ from partinstruct_mjx.assets.partnet import category_slug
 from partinstruct_mjx.tasks.episodes import Episode
 
 BENCH_CATEGORIES = ("mug", "bottle")
+DEFAULT_EPISODES = 256
+"""Episodes per run: 128 per object, near a long run's share (a 64-episode run, whose objects' last scenes wait for
+their slowest episode, measured 0.6x the demos/hour with 6 tries on a 2-core CPU; docs/benchmarks.md)."""
 
 
 def bench_episodes(count: int, categories=BENCH_CATEGORIES, seed: int = 0) -> list[Episode]:
