@@ -262,3 +262,13 @@ def test_generating_for_every_split_is_refused_by_name():
 
     with pytest.raises(TaskError, match="split None"):
         select_episodes(None, 10)
+
+
+def test_failure_names_say_why_an_episode_is_not_a_demo():
+    """The oracle's failed skill first; without one, a diverged simulation, then the step limit."""
+    episode = select_episodes("train", 10, seed=0, categories=["mug"])[0]
+    name = synthesis._failure_name
+    assert name(episode, 0, 10, True) == episode.chain[0].name
+    assert name(episode, -1, 10, True) == "physics_unstable"
+    assert name(episode, -1, 250, False) == "step_limit"
+    assert name(episode, -1, 10, False) == "no_task_success"

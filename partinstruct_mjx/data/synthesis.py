@@ -297,7 +297,7 @@ class _ObjectWorker:
             state = r.initial_state if r.initial_state is not None else np.concatenate(
                 [r.obs[name][0] for name in ("joint_states", "gripper_state", "object_pose")])
             demos.append(Demo(episodes[r.index], r.actions, obs, r.skill_index, state))
-        failures = [(episodes[r.index], _failure_name(episodes[r.index], r.failed_skill, r.length))
+        failures = [(episodes[r.index], _failure_name(episodes[r.index], r.failed_skill, r.length, r.unstable))
                     for r, demo in zip(finished, is_demo) if not demo]
         tick = time.perf_counter()
         writer.add(demos, failures)
@@ -338,11 +338,14 @@ def _pad(rows: np.ndarray, size: int) -> np.ndarray:
     return rows if len(rows) == size else np.concatenate([rows, np.repeat(rows[-1:], size - len(rows), 0)])
 
 
-def _failure_name(episode: Episode, failed_skill: int, length: int) -> str:
-    """Why an episode is not a demo: the chain skill the oracle failed, 'step_limit', or 'no_task_success' (the
-    oracle executed the whole chain but the task's goals did not hold)."""
+def _failure_name(episode: Episode, failed_skill: int, length: int, unstable: bool) -> str:
+    """Why an episode is not a demo: the chain skill the oracle failed, 'physics_unstable' (the simulation
+    diverged), 'step_limit', or 'no_task_success' (the oracle executed the whole chain but the task's goals did not
+    hold)."""
     if 0 <= failed_skill < len(episode.chain):
         return episode.chain[failed_skill].name
+    if unstable:
+        return "physics_unstable"
     from partinstruct_mjx.env import step_limit
 
     return "step_limit" if length >= step_limit(episode.split) else "no_task_success"

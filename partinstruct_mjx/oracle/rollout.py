@@ -55,6 +55,8 @@ class OracleEpisode:
     attempt solved, the tries of its furthest attempt (which `OraclePolicy`'s look-ahead replays)."""
     simulated_steps: int
     """Steps its scene was simulated for it, the undone tries included."""
+    unstable: bool
+    """Its last attempt ended because the simulation diverged (the env's `info["unstable"]`)."""
     initial_state: np.ndarray | None
     """MuJoCo physics state after its reset (mujoco backend), for exact replay."""
     actions: np.ndarray
@@ -243,12 +245,13 @@ def run_oracle(env: PartInstructEnv, episodes: list, key: jax.Array, record: boo
         done_for = np.where(retried, 0, done_for)
         search.save(backtrack.segment_starts(before, policy.state) & active & ~now, state, policy.state, length)
         ended = now & ~retried
+        unstable = np.asarray(state.info["unstable"])
         for b in np.flatnonzero(ended):
             # An episode no attempt solved reports its furthest attempt: the look-ahead replays that one.
             failed_skill, tries = ((int(policy.state.failed_skill[b]), search.chosen[b]) if success[b] else
                                    (int(search.furthest_failed_skill[b]), search.furthest_chosen[b]))
             yield _episode(int(owner[b]), bool(success[b]), int(length[b]), failed_skill, tries.copy(),
-                           int(simulated[b]), None if initial is None else initial[b].copy(),
+                           int(simulated[b]), bool(unstable[b]), None if initial is None else initial[b].copy(),
                            [frames[n] for n in steps[b]], b)
         owner[ended] = -1
         free = np.flatnonzero(owner < 0)[:len(pending)]
@@ -271,13 +274,13 @@ def run_oracle(env: PartInstructEnv, episodes: list, key: jax.Array, record: boo
 
 
 def _episode(index: int, success: bool, length: int, failed_skill: int, segment_tries: np.ndarray,
-             simulated: int, initial_state, frames: list[dict], row: int) -> OracleEpisode:
+             simulated: int, unstable: bool, initial_state, frames: list[dict], row: int) -> OracleEpisode:
     """An OracleEpisode from the batch frames of its steps (as run_oracle records them) and its scene's row."""
     stacked = jax.tree.map(lambda *xs: np.stack([x[row] for x in xs]), *frames) if frames else None
     empty = np.zeros((0,))
     return OracleEpisode(
         index=index, success=success, length=length, failed_skill=failed_skill, segment_tries=segment_tries,
-        simulated_steps=simulated, initial_state=initial_state,
+        simulated_steps=simulated, unstable=unstable, initial_state=initial_state,
         actions=stacked["action"] if stacked else empty, skill_index=stacked["skill"] if stacked else empty,
         obs=(stacked["obs"] | {"object_pose": stacked["object_pose"]}) if stacked else {},
         body_pos=stacked["body_pos"] if stacked else empty, body_quat=stacked["body_quat"] if stacked else empty,
