@@ -120,7 +120,7 @@ def results_markdown(results: dict) -> str:
         + f"; step limits: {', '.join(f'{s} {n}' for s, n in results['resolved']['step_limits'].items())}",
         f"- {provenance['date']}, commit {provenance['git_sha']}, {provenance['machine']}",
         *([f"- {summary['physics_unstable']} episodes ended early, failed, because their simulation diverged "
-           "(MuJoCo's bad-value warnings; `physics_unstable` in results.json)"]
+           "(NaN or huge joint values; `physics_unstable` in results.json)"]
           if summary.get("physics_unstable") else []),
         "",
         "## Success rate (%) ± standard error", "", success_table(summary, splits, results["label"]), "",

@@ -308,7 +308,7 @@ class _Film:
 def _record(episode: Episode, success: bool, completion: float, steps: int, horizon: int, skill_at: int,
             unstable: bool) -> dict:
     """One episode's outcome: what results.json stores per episode. `physics_unstable`: the episode ended early,
-    without success, because its simulation diverged (MuJoCo's bad-value warnings)."""
+    without success, because its simulation diverged (NaN or huge joint values)."""
     chain = episode.chain
     skill_at = min(skill_at, len(chain))
     return {"split": episode.split, "category": category_slug(episode.obj_class), "obj_id": episode.obj_id,

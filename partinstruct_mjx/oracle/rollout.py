@@ -245,7 +245,7 @@ def run_oracle(env: PartInstructEnv, episodes: list, key: jax.Array, record: boo
         done_for = np.where(retried, 0, done_for)
         search.save(backtrack.segment_starts(before, policy.state) & active & ~now, state, policy.state, length)
         ended = now & ~retried
-        unstable = np.asarray(state.info["unstable"])
+        unstable = np.asarray(state.info["unstable"]) if ended.any() else None  # read back only when needed
         for b in np.flatnonzero(ended):
             # An episode no attempt solved reports its furthest attempt: the look-ahead replays that one.
             failed_skill, tries = ((int(policy.state.failed_skill[b]), search.chosen[b]) if success[b] else
