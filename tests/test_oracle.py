@@ -11,7 +11,7 @@ import pytest
 
 from partinstruct_mjx.assets.catalog import load_catalog
 from partinstruct_mjx.control import jax_ik
-from partinstruct_mjx.control.rotations import quat_rotate
+from partinstruct_mjx.control.rotations import axis_angle_to_quat, quat_rotate
 from partinstruct_mjx.env import EnvConfig, PartInstructEnv, hold_action
 from partinstruct_mjx.oracle import backtrack, candidates, machine, pushing, rollout, rotation
 from partinstruct_mjx.oracle.rollout import OraclePolicy, run_oracle
@@ -572,7 +572,7 @@ def _cylinder(base, radius, height, rings):
                      base[2] + heights.ravel()], axis=1)
 
 
-def _planned_turn(points, hand_pos, closing, object_pos, v, d, on_table):
+def _planned_turn(points, hand_pos, closing, object_pos, v, d, on_table, settle=False):
     """rotation.plan for a hand holding the object from above at `hand_pos` (pads closing along `closing`), the arm
     solved there from home: (found, axis, angle, pivot, raise)."""
     kinematics = jax_ik.ArmKinematics.from_scene(build_scene())
@@ -581,7 +581,8 @@ def _planned_turn(points, hand_pos, closing, object_pos, v, d, on_table):
                               hand_quat[None])
     found, axis, angle, pivot, raise_by, _ = jax.jit(rotation.plan)(
         kinematics, q[0], hand_pos, hand_quat, jnp.asarray(object_pos, jnp.float32), jnp.asarray(points, jnp.float32),
-        jnp.ones(len(points), bool), jnp.asarray(v, jnp.float32), jnp.asarray(d, jnp.float32), jnp.asarray(on_table))
+        jnp.ones(len(points), bool), jnp.asarray(v, jnp.float32), jnp.asarray(d, jnp.float32), jnp.asarray(on_table),
+        jnp.asarray(settle))
     return found, axis, angle, pivot, raise_by
 
 
@@ -612,6 +613,30 @@ def test_a_turn_in_the_air_keeps_the_hand_above_the_table():
     for fraction in (0.5, 1.0):
         pos, quat = rotation.turned_pose(pivot, axis, angle, fraction, hand_pos, hand_quat)
         assert float(rotation.hand_bottom(pos + raise_by * jnp.array([0.0, 0.0, 1.0]), quat)) > TABLE_HEIGHT + 0.015
+
+
+def test_a_turn_before_a_put_down_keeps_the_hand_above_the_objects_lowest_point():
+    # An 8 x 16 x 10 cm box held from above (pads closing along x), 20 cm over the table, its top turned to face -x.
+    # The shortest turn (about y) stands the closing axis upright, and the hand, 23 cm wide along it, then reaches
+    # 8 cm under the box: a put-down would press the hand onto the table before the box is down. Where a put-down
+    # follows, the plan turns so that the box's lowest point stays below the hand's.
+    centre = np.array([0.15, 0.0, TABLE_HEIGHT + 0.2])
+    xs, ys, zs = np.meshgrid(*[np.linspace(-s / 2, s / 2, 7) for s in (0.08, 0.16, 0.10)])
+    points = np.stack([xs.ravel(), ys.ravel(), zs.ravel()], axis=1) + centre
+    hand_pos = jnp.array(centre + [0.0, 0.0, 0.05], jnp.float32)
+    closing = jnp.array([1.0, 0.0, 0.0])
+    hand_quat = candidates.tcp_quat(jnp.array([0.0, 0.0, -1.0]), closing)
+
+    def hand_above_object(settle):
+        found, axis, angle, pivot, raise_by = _planned_turn(points, hand_pos, closing, centre, [0.0, 0.0, 0.03],
+                                                            [-1.0, 0.0, 0.0], on_table=False, settle=settle)
+        assert bool(found)
+        pos, quat = rotation.turned_pose(pivot, axis, angle, 1.0, hand_pos, hand_quat)
+        turned = pivot + quat_rotate(axis_angle_to_quat(axis, angle), jnp.asarray(points, jnp.float32) - pivot)
+        return float(rotation.hand_bottom(pos, quat) - turned[:, 2].min())
+
+    assert hand_above_object(False) < -0.05
+    assert hand_above_object(True) > -rotation.PUT_DOWN_SLACK
 
 
 def test_touching_again_after_a_push_aims_over_the_rear_faces_top():

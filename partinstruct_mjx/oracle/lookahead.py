@@ -70,7 +70,8 @@ def outlook(kinematics, q, hand_pos, hand_quat, chain: dict, start, object_pos, 
     moved = pos - hand_pos
     found, axis, angle, pivot, raise_by, q_turned = rotation.plan(
         kinematics, q, pos, hand_quat, object_pos + moved, object_points + moved, object_valid,
-        part_vector(chain["part"][turn_row]), chain["direction"][turn_row], chain["on_table_turn"][turn_row])
+        part_vector(chain["part"][turn_row]), chain["direction"][turn_row], chain["on_table_turn"][turn_row],
+        (after & put_down).any())
     turned_pos, turned_quat = rotation.turned_pose(pivot, axis, angle, 1.0, pos, hand_quat)
     turned_pos = turned_pos + jnp.array([0.0, 0.0, 1.0]) * raise_by
     # The moves after the turn (a put-down), from the pose the turn ends in.

@@ -278,9 +278,11 @@ def _plan_turn(o: OracleState, data, geo: PartGeometry, kinematics, q):
     flat = o.on_table_turn[index]
     vector = predicates.part_vector(data, geo, o.masks, jnp.maximum(o.part[index], 0))
     vector = jnp.where(flat, vector * jnp.array([1.0, 1.0, 0.0]), vector)
+    following = jnp.clip(index + 1, 0, progress.MAX_SKILLS - 1)
+    settle = (index + 1 < o.num_skills) & (o.kind[following] == MOVE) & o.put_down[following]
     found, axis, angle, pivot, raise_by, _ = rotation.plan(
         kinematics, q, o.cmd_pos, o.cmd_quat, data.object_pos, *_object_cloud(data, geo), vector, o.direction[index],
-        flat)
+        flat, settle)
     take = need & found
     return o.replace(
         turn_axis=jnp.where(take, axis, o.turn_axis), turn_angle=jnp.where(take, angle, o.turn_angle),

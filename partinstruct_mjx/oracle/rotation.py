@@ -9,7 +9,11 @@ an off-centre grasp, a standing bottle was dragged round on the table and twiste
 hand follows the object rigidly, so a turn R about pivot k takes the TCP pose (p, q) to (k + R (p - k), R q). An
 option is kept when the batched JAX IK reaches the TCP at every sixth of the way along it, each from the previous
 solution without a joint jumping, and the turned object and hand stay above the table (the hand is raised for them
-where needed); the cheapest kept option (turn angle, object displacement, raise) wins. Pure JAX for one environment.
+where needed); the cheapest kept option (turn angle, object displacement, raise) wins. Where a put-down follows the
+turn, options after which it cannot be made rank last: the arm must reach the way down until the turned object's
+lowest point meets the table, the hand's lowest point must not be under the object's (the hand, wide along the
+fingers' closing axis, would meet the table first), and the object's origin must rest near the height it rested at
+(the put-down's AT measures it from there). Pure JAX for one environment.
 """
 
 from __future__ import annotations
@@ -38,6 +42,17 @@ MAX_JOINT_JUMP = 0.8
 """Largest joint change (rad) between two of those points: the env's IK follows the turn in small steps, so a
 solution that only an elbow or wrist flip reaches is not one the arm can turn through."""
 UP = np.array([0.0, 0.0, 1.0], np.float32)
+PUT_DOWN_FRACTIONS = np.array([0.5, 1.0], np.float32)
+"""Points along a put-down after the turn where the IK must reach the TCP."""
+PUT_DOWN_SLACK = 0.01
+"""How far (m) the hand's lowest point may be below the turned object's when the put-down starts (the table then
+stops the hand before the object is down)."""
+MAX_RESTING_CHANGE = 0.06
+"""Largest change (m) of the object origin's height above its lowest point that a turn before a put-down may make
+(the put-down's AT allows 0.08 from the origin before the lift)."""
+UNSETTLED_COST = 5.0
+"""Cost added to a turn after which the put-down cannot be made (more than the other costs of any turn that keeps
+the object within MAX_DISPLACEMENT)."""
 HAND_SPHERES = np.array([[0.0, 0.085, -0.02, 0.028], [0.0, -0.085, -0.02, 0.028], [0.0, 0.0, -0.082, 0.045],
                          [0.0, 0.0, -0.192, 0.045]], np.float32)
 """Spheres (centre in the TCP frame, radius) bounding the hand's palm capsule and the last link's, which a turn in
@@ -107,11 +122,13 @@ def hand_bottom(pos, quat):
     return (centres[:, 2] - HAND_SPHERES[:, 3]).min()
 
 
-def plan(kinematics, q, hand_pos, hand_quat, object_pos, object_points, object_valid, v, d, on_table):
+def plan(kinematics, q, hand_pos, hand_quat, object_pos, object_points, object_valid, v, d, on_table,
+         settle=False):
     """The turn to make: (found, axis (3,), angle, pivot (3,), raise, joints (7,) at its end) for one environment.
 
     q: the arm's joint targets now; hand_pos/hand_quat: the commanded TCP pose the turn starts from; object_points
-    (M, 3) world; v: the part's direction now (unnormalised is fine); d: the goal direction; on_table: yaw only.
+    (M, 3) world; v: the part's direction now (unnormalised is fine); d: the goal direction; on_table: yaw only;
+    settle: a put-down follows the turn, so options after which it cannot be made rank last.
     """
     axes, angles, valid = options(v, d, on_table)
     middle = jnp.where(on_table, pushing.footprint_centre(object_points, object_valid), object_pos)
@@ -139,10 +156,30 @@ def plan(kinematics, q, hand_pos, hand_quat, object_pos, object_points, object_v
             return (reached, ok), None
 
         (joints, ok), _ = jax.lax.scan(follow, (q, jnp.asarray(True)), jnp.asarray(FRACTIONS, jnp.float32))
-        displacement = jnp.linalg.norm(pivot + quat_rotate(axis_angle_to_quat(axis, angle), object_pos - pivot)
-                                       - object_pos) + raise_by
+        # The put-down after the turn: the hand lowers the object until its lowest point meets the table; the hand
+        # must not reach the table first, and the arm must reach the way down.
+        end_pos, end_quat = turned_pose(pivot, axis, angle, 1.0, hand_pos, hand_quat)
+        end_pos = end_pos + raise_by * jnp.asarray(UP)
+        drop = jnp.maximum(lowest(1.0) + raise_by - TABLE_HEIGHT, 0.0)
+
+        def lower(carry, fraction):
+            joints_down, down_ok = carry
+            reached, position_error, rotation_error = jax_ik._solve_one(
+                kinematics, REACH_CONFIG, joints_down, end_pos - fraction * drop * jnp.asarray(UP), end_quat)
+            down_ok = (down_ok & (position_error < 0.005) & (rotation_error < 0.05)
+                       & (jnp.abs(reached - joints_down).max() < MAX_JOINT_JUMP))
+            return (reached, down_ok), None
+
+        (_, down_ok), _ = jax.lax.scan(lower, (joints, jnp.asarray(True)), jnp.asarray(PUT_DOWN_FRACTIONS))
+        # AT after the put-down measures the object's origin from where it rested before: a turn that changes the
+        # origin's height above the object's lowest point by more than AT allows can never be put down there.
+        turned_origin = pivot + quat_rotate(axis_angle_to_quat(axis, angle), object_pos - pivot)
+        resting_change = jnp.abs((turned_origin[2] - lowest(1.0)) - (object_pos[2] - lowest(0.0)))
+        settles = (down_ok & (hand_bottom(end_pos, end_quat) - TABLE_HEIGHT > drop - PUT_DOWN_SLACK)
+                   & (resting_change < MAX_RESTING_CHANGE))
+        displacement = jnp.linalg.norm(turned_origin - object_pos) + raise_by
         cost = (angle + 4.0 * displacement + 20.0 * jnp.maximum(displacement - MAX_DISPLACEMENT, 0.0)
-                + 3.0 * raise_by)
+                + 3.0 * raise_by + jnp.where(settle & ~settles, UNSETTLED_COST, 0.0))
         return ok, cost, raise_by, joints
 
     ok, cost, raise_by, joints = jax.vmap(evaluate)(axes, angles, pivots)
