@@ -122,6 +122,14 @@ def hand_bottom(pos, quat):
     return (centres[:, 2] - HAND_SPHERES[:, 3]).min()
 
 
+def _reach_step(kinematics, joints, ok, pos, quat):
+    """The IK from `joints` to the TCP pose (pos, quat): the joints reached, and `ok` still holding if it got there
+    without a joint jumping (MAX_JOINT_JUMP)."""
+    reached, position_error, rotation_error = jax_ik._solve_one(kinematics, REACH_CONFIG, joints, pos, quat)
+    return reached, (ok & (position_error < 0.005) & (rotation_error < 0.05)
+                     & (jnp.abs(reached - joints).max() < MAX_JOINT_JUMP))
+
+
 def plan(kinematics, q, hand_pos, hand_quat, object_pos, object_points, object_valid, v, d, on_table,
          settle=False):
     """The turn to make: (found, axis (3,), angle, pivot (3,), raise, joints (7,) at its end) for one environment.
@@ -147,39 +155,35 @@ def plan(kinematics, q, hand_pos, hand_quat, object_pos, object_points, object_v
             jnp.minimum(lowest(0.5), lowest(1.0)), jnp.minimum(lowest_hand(0.5), lowest_hand(1.0)))))
 
         def follow(carry, fraction):
-            joints, ok = carry
             pos, quat = turned_pose(pivot, axis, angle, fraction, hand_pos, hand_quat)
             pos = pos + raise_by * jnp.asarray(UP) * jnp.minimum(1.0, 2 * fraction)
-            reached, position_error, rotation_error = jax_ik._solve_one(kinematics, REACH_CONFIG, joints, pos, quat)
-            ok = (ok & (position_error < 0.005) & (rotation_error < 0.05)
-                  & (jnp.abs(reached - joints).max() < MAX_JOINT_JUMP))
-            return (reached, ok), None
+            return _reach_step(kinematics, *carry, pos, quat), None
 
         (joints, ok), _ = jax.lax.scan(follow, (q, jnp.asarray(True)), jnp.asarray(FRACTIONS, jnp.float32))
-        # The put-down after the turn: the hand lowers the object until its lowest point meets the table; the hand
-        # must not reach the table first, and the arm must reach the way down.
-        end_pos, end_quat = turned_pose(pivot, axis, angle, 1.0, hand_pos, hand_quat)
-        end_pos = end_pos + raise_by * jnp.asarray(UP)
-        drop = jnp.maximum(lowest(1.0) + raise_by - TABLE_HEIGHT, 0.0)
-
-        def lower(carry, fraction):
-            joints_down, down_ok = carry
-            reached, position_error, rotation_error = jax_ik._solve_one(
-                kinematics, REACH_CONFIG, joints_down, end_pos - fraction * drop * jnp.asarray(UP), end_quat)
-            down_ok = (down_ok & (position_error < 0.005) & (rotation_error < 0.05)
-                       & (jnp.abs(reached - joints_down).max() < MAX_JOINT_JUMP))
-            return (reached, down_ok), None
-
-        (_, down_ok), _ = jax.lax.scan(lower, (joints, jnp.asarray(True)), jnp.asarray(PUT_DOWN_FRACTIONS))
-        # AT after the put-down measures the object's origin from where it rested before: a turn that changes the
-        # origin's height above the object's lowest point by more than AT allows can never be put down there.
         turned_origin = pivot + quat_rotate(axis_angle_to_quat(axis, angle), object_pos - pivot)
-        resting_change = jnp.abs((turned_origin[2] - lowest(1.0)) - (object_pos[2] - lowest(0.0)))
-        settles = (down_ok & (hand_bottom(end_pos, end_quat) - TABLE_HEIGHT > drop - PUT_DOWN_SLACK)
-                   & (resting_change < MAX_RESTING_CHANGE))
+
+        def put_down_clear():
+            # The hand lowers the object until its lowest point meets the table: the arm must reach the way down and
+            # the hand must not reach the table first. AT after the put-down measures the object's origin from where
+            # it rested before: a turn that changes the origin's height above the object's lowest point by more than
+            # AT allows can never be put down there.
+            end_pos, end_quat = turned_pose(pivot, axis, angle, 1.0, hand_pos, hand_quat)
+            end_pos = end_pos + raise_by * jnp.asarray(UP)
+            drop = jnp.maximum(lowest(1.0) + raise_by - TABLE_HEIGHT, 0.0)
+
+            def lower(carry, fraction):
+                return _reach_step(kinematics, *carry, end_pos - fraction * drop * jnp.asarray(UP), end_quat), None
+
+            (_, down_ok), _ = jax.lax.scan(lower, (joints, jnp.asarray(True)), jnp.asarray(PUT_DOWN_FRACTIONS))
+            resting_change = jnp.abs((turned_origin[2] - lowest(1.0)) - (object_pos[2] - lowest(0.0)))
+            return (down_ok & (hand_bottom(end_pos, end_quat) - TABLE_HEIGHT > drop - PUT_DOWN_SLACK)
+                    & (resting_change < MAX_RESTING_CHANGE))
+
+        # Only a turn with a put-down after it pays for the check (a real branch where `settle` is not batched).
+        unsettled = jax.lax.cond(settle, lambda: ~put_down_clear(), lambda: jnp.asarray(False))
         displacement = jnp.linalg.norm(turned_origin - object_pos) + raise_by
         cost = (angle + 4.0 * displacement + 20.0 * jnp.maximum(displacement - MAX_DISPLACEMENT, 0.0)
-                + 3.0 * raise_by + jnp.where(settle & ~settles, UNSETTLED_COST, 0.0))
+                + 3.0 * raise_by + jnp.where(unsettled, UNSETTLED_COST, 0.0))
         return ok, cost, raise_by, joints
 
     ok, cost, raise_by, joints = jax.vmap(evaluate)(axes, angles, pivots)
