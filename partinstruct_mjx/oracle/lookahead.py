@@ -30,8 +30,7 @@ def reach_all(kinematics, q, positions, quat, config=REACH_CONFIG, counts=None):
     def visit(carry, item):
         joints, ok = carry
         position, counted = item
-        reached, position_error, rotation_error = jax_ik._solve_one(kinematics, config, joints, position, quat)
-        hit = (position_error < 0.005) & (rotation_error < 0.05)
+        reached, hit = rotation.reach(kinematics, config, joints, position, quat)
         return (jnp.where(counted, reached, joints), ok & (hit | ~counted)), None
 
     (joints, ok), _ = jax.lax.scan(visit, (q, jnp.asarray(True)), (positions, counts))

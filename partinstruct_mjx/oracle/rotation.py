@@ -122,12 +122,22 @@ def hand_bottom(pos, quat):
     return (centres[:, 2] - HAND_SPHERES[:, 3]).min()
 
 
+REACHED_POSITION = 0.005
+REACHED_ROTATION = 0.05
+"""An IK solve reaches a TCP pose when it ends within this many metres and radians of it."""
+
+
+def reach(kinematics, config, joints, pos, quat):
+    """The IK from `joints` to the TCP pose (pos, quat): the joints it ends at, and whether it got there."""
+    reached, position_error, rotation_error = jax_ik._solve_one(kinematics, config, joints, pos, quat)
+    return reached, (position_error < REACHED_POSITION) & (rotation_error < REACHED_ROTATION)
+
+
 def _reach_step(kinematics, joints, ok, pos, quat):
-    """The IK from `joints` to the TCP pose (pos, quat): the joints reached, and `ok` still holding if it got there
-    without a joint jumping (MAX_JOINT_JUMP)."""
-    reached, position_error, rotation_error = jax_ik._solve_one(kinematics, REACH_CONFIG, joints, pos, quat)
-    return reached, (ok & (position_error < 0.005) & (rotation_error < 0.05)
-                     & (jnp.abs(reached - joints).max() < MAX_JOINT_JUMP))
+    """`reach` from `joints`: the joints reached, and `ok` still holding if it got there without a joint jumping
+    (MAX_JOINT_JUMP)."""
+    reached, hit = reach(kinematics, REACH_CONFIG, joints, pos, quat)
+    return reached, ok & hit & (jnp.abs(reached - joints).max() < MAX_JOINT_JUMP)
 
 
 def plan(kinematics, q, hand_pos, hand_quat, object_pos, object_points, object_valid, v, d, on_table,
