@@ -21,7 +21,7 @@ from partinstruct_mjx.tasks.instructions import (TASK_TEMPLATES, instruction_slo
                                                  task_instruction)
 from partinstruct_mjx.tasks.skills import SkillStep
 from partinstruct_mjx.tasks.task_types import TASK_TYPES
-from partinstruct_mjx.tasks.vocabulary import DIRECTIONS, OPPOSITE, UNIT_DISTANCE
+from partinstruct_mjx.tasks.vocabulary import DIRECTIONS, HORIZONTAL, OPPOSITE, UNIT_DISTANCE
 
 
 @pytest.fixture(scope="module")
@@ -212,7 +212,9 @@ def test_directions_fit_the_object_and_the_workspace(episodes, catalog):
                 assert -0.2 <= x <= 0.25 and -0.25 <= y <= 0.35 and DIRECTIONS[word][2] == 0
             else:
                 assert word != views[parts[part_slot]].facing
-                assert role == "rotate_air" or DIRECTIONS[word][2] == 0
+                assert role in ("rotate_air", "rotate_put_down") or DIRECTIONS[word][2] == 0
+            if role == "rotate_put_down":
+                assert ep.task_type in (11, 12, 16) and word in views[parts[part_slot]].put_down_facing
             if role == "opposite":
                 assert ep.task_type == 15 and word == OPPOSITE[views[parts[part_slot]].facing]
 
@@ -359,9 +361,26 @@ def test_turns_on_the_table_only_for_parts_a_yaw_can_make_face_the_goal():
     # elevation, so FACING (0.5 rad) could never hold; 5 mm below, it can.
     def view(z):
         return slot_rules.PartView(offset=np.array([-0.029, 0.0, z]), facing="front", exposed=frozenset(),
-                                   pushable=frozenset())
+                                   pushable=frozenset(), put_down_facing=frozenset(DIRECTIONS))
 
     for role in ("rotate_table", "opposite"):
         assert slot_rules.direction_candidates(role, view(-0.025), []) == []
         assert slot_rules.direction_candidates(role, view(-0.005), [])
     assert slot_rules.direction_candidates("rotate_air", view(-0.025), [])
+
+
+def test_turns_before_a_put_down_only_to_directions_the_object_can_lie_facing():
+    # A knife's handle ('base body') faces up or down only with the knife standing on its end, its origin 9 cm
+    # higher above its lowest point than lying down: the put-down's AT (8 cm) could never hold. Lying down it can
+    # face any horizontal way; held in the air (type 8) any way at all.
+    knife = slot_rules.load_object_geometry(str(assets_root() / "objects" / "knife" / "knife_004"))
+    handle = slot_rules.part_views(knife, 0.3)["base body"]
+    assert handle.put_down_facing == frozenset(HORIZONTAL)
+    assert slot_rules.direction_roles(11)["D1"] == ("rotate_put_down", "P2")
+    assert slot_rules.direction_roles(8)["D1"] == ("rotate_air", "P2")
+    assert "bottom" in slot_rules.direction_candidates("rotate_air", handle, [])
+    assert set(slot_rules.direction_candidates("rotate_put_down", handle, [])) <= set(HORIZONTAL)
+    assert all({g.threshold for g in TASK_TYPES[t].phases[-1] if g.kind == "AT"} == {slot_rules.PUT_DOWN_AT_THRESHOLD}
+               for t in (11, 12, 16))
+    bottle = slot_rules.load_object_geometry(str(assets_root() / "objects" / "bottle" / "bottle_002"))
+    assert all(view.put_down_facing == frozenset(DIRECTIONS) for view in slot_rules.part_views(bottle, 0.3).values())

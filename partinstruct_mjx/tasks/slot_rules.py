@@ -21,10 +21,14 @@ episode's yaw:
   a touched part (`touch_reachable`), where the chain's pushes and carries before have moved the object;
 * touch: exposed;
 * rotate: centroid >= 2 cm from the object origin (FACING is measured from it);
-  in the air any direction but the one the part faces now; on the table only horizontal ones and only for parts
-  that face a horizontal direction now and lie within MAX_TABLE_TURN_ELEVATION of level (a yaw turn changes
-  neither a part that faces up nor how far its centroid lies above or below the origin, and FACING allows 0.5
-  rad in all); type 15 turns the part to the opposite of the direction it faces now;
+  in the air any direction but the one the part faces now, and where the object is put down after the turn
+  (types 11, 12, 16) only directions the part can face (within FACING's threshold) with the object on the table
+  and its origin within the put-down's AT threshold of the height it rests at now (a knife's blade cannot face
+  up with the knife lying down, and standing on its end the knife's origin is 9 cm too high); on the table only
+  horizontal ones and only for parts that face a horizontal direction now and lie within
+  MAX_TABLE_TURN_ELEVATION of level (a yaw turn changes neither a part that faces up nor how far its centroid lies
+  above or below the origin, and FACING allows 0.5 rad in all); type 15 turns the part to the opposite of the
+  direction it faces now;
 * move / push: horizontal, the object stays in the workspace (p0 + 0.12 dir within WORKSPACE); a push towards dir
   touches the part from the other side, so the part must be exposed on OPPOSITE[dir] and have a push point there
   (oracle/pushing.py: low enough not to tip the object, near the line through its middle);
@@ -57,7 +61,7 @@ from partinstruct_mjx.sim.panda import HOME_ARM_QPOS
 from partinstruct_mjx.sim.scene import TABLE_HEIGHT, SceneConfig, build_scene
 from partinstruct_mjx.tasks.instructions import instruction_slots
 from partinstruct_mjx.tasks.part_geometry import spatial_masks
-from partinstruct_mjx.tasks.task_types import task_type
+from partinstruct_mjx.tasks.task_types import FACING_THRESHOLD, task_type
 from partinstruct_mjx.tasks.vocabulary import (DIRECTIONS, HORIZONTAL, OPPOSITE, SPATIAL_PARTS, UNIT_DISTANCE,
                                                 nearest_direction)
 
@@ -93,6 +97,11 @@ MAX_TABLE_TURN_ELEVATION = 0.4
 """Largest angle (rad) between a part's FACING vector and the horizontal for a turn on the table: a yaw turn keeps
 that angle, and FACING (0.5 rad) must still hold with the oracle's heading tolerance (0.2 rad). A standing bottle's
 'front' lies 2.9 cm out and 2.5 cm below its origin (0.71 rad): no turn on the table could make it face right."""
+PUT_DOWN_AT_THRESHOLD = 0.08
+"""AT's threshold (m) in the put-down phase of the types that turn the object in the air and put it down (11, 12,
+16): how much higher above the object's lowest point its origin may end than where it rests now."""
+NUM_UP_SAMPLES = 4000
+"""Object orientations (which of its directions points up; evenly spread) searched for a put-down pose."""
 WORKSPACE = ((-0.2, 0.25), (-0.25, 0.35))
 """x and y bounds a move or push must keep the object in."""
 
@@ -116,6 +125,9 @@ class ObjectGeometry:
     object_points: np.ndarray
     part_normals: tuple[np.ndarray, ...]
     object_normals: np.ndarray
+    resting_rise: np.ndarray
+    """(NUM_UP_SAMPLES,) how much higher (m) the origin sits above the object's lowest point with UP_SAMPLES[k] (root
+    frame) pointing up than at rest."""
 
 
 @dataclass(frozen=True)
@@ -131,6 +143,9 @@ class PartView:
     pushable: frozenset[str]
     """Horizontal directions a fingertip on the part can push the object along (oracle/pushing.py: pressing low
     enough not to tip it, near the line through its middle)."""
+    put_down_facing: frozenset[str]
+    """Directions the part can face (FACING_THRESHOLD) with the object on the table and its origin less than
+    PUT_DOWN_AT_THRESHOLD higher above the object's lowest point than now."""
 
 
 @functools.lru_cache(maxsize=None)
@@ -155,11 +170,28 @@ def load_object_geometry(object_dir: str) -> ObjectGeometry:
         turned = np.einsum("nij,nj->ni", rotations[bodies], points)
         return np.ascontiguousarray((turned + origins[bodies] if moved else turned).T)
 
+    object_points = to_root(data["object_points"], data["object_point_body"])
     return ObjectGeometry(tuple(str(n) for n in data["part_names"]),
                           tuple(to_root(p, b) for p, b in zip(data["points"], data["point_body"])),
-                          to_root(data["object_points"], data["object_point_body"]),
+                          object_points,
                           tuple(to_root(n, b, False) for n, b in zip(data["normals"], data["point_body"])),
-                          to_root(data["object_normals"], data["object_point_body"], False))
+                          to_root(data["object_normals"], data["object_point_body"], False),
+                          _resting_rise(object_points))
+
+
+def _up_samples(count: int) -> np.ndarray:
+    """(count, 3) unit vectors spread evenly over the sphere (a Fibonacci lattice)."""
+    i = np.arange(count) + 0.5
+    polar, azimuth = np.arccos(1.0 - 2.0 * i / count), math.pi * (1.0 + math.sqrt(5.0)) * i
+    return np.stack([np.cos(azimuth) * np.sin(polar), np.sin(azimuth) * np.sin(polar), np.cos(polar)], axis=1)
+
+
+UP_SAMPLES = _up_samples(NUM_UP_SAMPLES)
+
+
+def _resting_rise(object_points: np.ndarray) -> np.ndarray:
+    """ObjectGeometry.resting_rise of the root-frame points (3, N) of the object at rest."""
+    return (-(UP_SAMPLES @ object_points).min(axis=1) + object_points[2].min()).astype(np.float32)
 
 
 def settled_tilt(object_xml: Path) -> np.ndarray:
@@ -192,7 +224,7 @@ def part_views(geometry: ObjectGeometry, yaw: float) -> dict[str, PartView]:
     points = dict(zip(geometry.part_names, geometry.part_points))
     masks = np.asarray(_spatial_masks(world.T))
     points.update({word: geometry.object_points[:, masks[SPATIAL_PARTS.index(word)]] for word in SPATIAL_WORDS})
-    return {name: _view(local, rotation, world) for name, local in points.items()}
+    return {name: _view(local, rotation, world, geometry.resting_rise) for name, local in points.items()}
 
 
 def graspable(object_dir: str, yaw: float, part: str) -> bool:
@@ -324,7 +356,7 @@ def _any_reached_from_home(kinematics, positions, quats, axes, usable):
     return (reached & usable).any()
 
 
-def _view(local: np.ndarray, rotation: np.ndarray, object_world: np.ndarray) -> PartView:
+def _view(local: np.ndarray, rotation: np.ndarray, object_world: np.ndarray, resting_rise: np.ndarray) -> PartView:
     world = rotation @ local
     lo, hi = world.min(axis=1), world.max(axis=1)
     free = _reach(lo, hi) + 0.1 * np.linalg.norm(hi - lo) >= _reach_at_level(object_world, lo, hi)
@@ -335,7 +367,18 @@ def _view(local: np.ndarray, rotation: np.ndarray, object_world: np.ndarray) -> 
     ok = np.asarray(_pushable(padded, np.arange(size) < world.shape[1], object_world.T.astype(np.float32)))
     return PartView(offset=offset, facing=nearest_direction(offset),
                     exposed=frozenset(word for word, ok in zip(APPROACHES, free) if ok),
-                    pushable=frozenset(word for word, good in zip(HORIZONTAL, ok) if good))
+                    pushable=frozenset(word for word, good in zip(HORIZONTAL, ok) if good),
+                    put_down_facing=_put_down_facing(local.mean(axis=1), resting_rise))
+
+
+def _put_down_facing(offset: np.ndarray, resting_rise: np.ndarray) -> frozenset[str]:
+    """PartView.put_down_facing of a part whose FACING vector is `offset` (root frame). A yaw leaves the elevation
+    of the part's vector as it is, so the part can face a word in some orientation with UP_SAMPLES[k] up when that
+    elevation is within FACING_THRESHOLD of the word's."""
+    elevation = np.arcsin(np.clip(UP_SAMPLES @ (offset / np.linalg.norm(offset)), -1.0, 1.0))
+    low = resting_rise < PUT_DOWN_AT_THRESHOLD
+    return frozenset(word for word, d in DIRECTIONS.items()
+                     if (low & (np.abs(elevation - math.asin(d[2])) <= FACING_THRESHOLD)).any())
 
 
 @jax.jit
@@ -373,9 +416,11 @@ def part_roles(type_id: int) -> Mapping[str, str]:
 
 @functools.lru_cache(maxsize=None)
 def direction_roles(type_id: int) -> Mapping[str, tuple[str, str | None]]:
-    """Direction slot -> (role, part slot it depends on); roles: move, push, rotate_air, rotate_table, opposite."""
+    """Direction slot -> (role, part slot it depends on); roles: move, push, rotate_air, rotate_put_down (in the air,
+    a put-down follows), rotate_table, opposite."""
     roles, in_air, touched = {}, False, None
-    for step in task_type(type_id).chain:
+    chain = task_type(type_id).chain
+    for index, step in enumerate(chain):
         if step.name == "touch_obj":
             touched = step.part
         elif step.name == "grasp_obj":
@@ -385,7 +430,9 @@ def direction_roles(type_id: int) -> Mapping[str, tuple[str, str | None]]:
         elif step.name == "move_gripper":
             roles[step.direction] = ("push", touched) if step.touching else ("move", None)
         elif step.name == "rotate_obj":
-            role = "opposite" if type_id in OPPOSITE_TYPES else "rotate_air" if in_air else "rotate_table"
+            put_down = any(later.put_down for later in chain[index + 1:])
+            role = ("opposite" if type_id in OPPOSITE_TYPES else "rotate_table" if not in_air
+                    else "rotate_put_down" if put_down else "rotate_air")
             roles[step.direction] = (role, step.part)
     return MappingProxyType(roles)
 
@@ -417,6 +464,8 @@ def direction_candidates(role: str, view: PartView | None, moves: list[str]) -> 
     facing = view.facing
     if role == "rotate_air":
         return [w for w in DIRECTIONS if w != facing]
+    if role == "rotate_put_down":
+        return [w for w in DIRECTIONS if w != facing and w in view.put_down_facing]
     level = float(np.linalg.norm(view.offset[:2]))
     if (facing not in HORIZONTAL or level < MIN_FACING_OFFSET
             or math.atan2(abs(float(view.offset[2])), level) > MAX_TABLE_TURN_ELEVATION):

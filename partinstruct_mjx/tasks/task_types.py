@@ -16,6 +16,8 @@ from partinstruct_mjx.tasks.skills import SkillStep
 
 ANY_PART = "*"
 """Goal part meaning 'any part of the object' (GRASPING/TOUCHING of the whole object)."""
+FACING_THRESHOLD = 0.5
+"""Radians between a part's direction and its goal within which FACING holds (spec 4)."""
 
 
 @dataclass(frozen=True)
@@ -125,7 +127,7 @@ def _at(*offset, threshold):
 
 
 def _facing(direction, part="P2"):
-    return Goal("FACING", part=part, direction=direction, threshold=0.5)
+    return Goal("FACING", part=part, direction=direction, threshold=FACING_THRESHOLD)
 
 
 _TYPES = [
