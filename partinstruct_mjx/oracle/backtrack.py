@@ -23,7 +23,7 @@ from partinstruct_mjx.oracle.kinds import GRASP, TOUCH
 from partinstruct_mjx.sim.state import select_rows
 from partinstruct_mjx.tasks import progress
 
-SEGMENT_TRIES = 6
+SEGMENT_TRIES = 10
 """Tries per segment in demo synthesis (1 = no backtracking)."""
 TRY_SKIP = 2
 """Try k of a segment passes over the k * TRY_SKIP best reachable candidates of its fresh sample (each grasp comes
