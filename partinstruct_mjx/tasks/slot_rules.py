@@ -97,9 +97,10 @@ MAX_TABLE_TURN_ELEVATION = 0.4
 """Largest angle (rad) between a part's FACING vector and the horizontal for a turn on the table: a yaw turn keeps
 that angle, and FACING (0.5 rad) must still hold with the oracle's heading tolerance (0.2 rad). A standing bottle's
 'front' lies 2.9 cm out and 2.5 cm below its origin (0.71 rad): no turn on the table could make it face right."""
-PUT_DOWN_AT_THRESHOLD = 0.08
+PUT_DOWN_AT_THRESHOLD = next(goal.threshold for goal in task_type(11).phases[-1] if goal.kind == "AT")
 """AT's threshold (m) in the put-down phase of the types that turn the object in the air and put it down (11, 12,
-16): how much higher above the object's lowest point its origin may end than where it rests now."""
+16; taken from type 11's goals): how much higher above the object's lowest point its origin may end than where it
+rests now."""
 NUM_UP_SAMPLES = 4000
 """Object orientations (which of its directions points up; evenly spread) searched for a put-down pose."""
 WORKSPACE = ((-0.2, 0.25), (-0.25, 0.35))
