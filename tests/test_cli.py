@@ -89,3 +89,13 @@ def test_bench_times_the_cold_run_alone_only_in_the_eval_suite(tmp_path, capsys)
     assert main(["bench", "demos", "--repeats", "0", "--output", str(tmp_path / "benchmarks.md")]) == 2
     assert "--repeats 0: the demos suite needs at least 1" in capsys.readouterr().err
     assert not (tmp_path / "benchmarks.md").exists()
+
+
+@pytest.mark.parametrize("command", ["demos", "eval"])
+def test_help_states_the_oracle_tries_the_command_uses(command):
+    from partinstruct_mjx.oracle.backtrack import SEGMENT_TRIES
+
+    out = subprocess.run([sys.executable, "-m", "partinstruct_mjx.cli", command, "--help"], capture_output=True,
+                         text=True)
+    assert out.returncode == 0
+    assert f"(default {SEGMENT_TRIES}, oracle/backtrack.py's SEGMENT_TRIES" in " ".join(out.stdout.split())

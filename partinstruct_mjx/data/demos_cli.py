@@ -88,7 +88,8 @@ def add_demos_parser(subparsers) -> argparse.ArgumentParser:
                              "not depend on it")
     parser.add_argument("--oracle-tries", type=int, default=None, metavar="N",
                         help="tries per grasp or touch: a failed one and what follows it is tried again from the "
-                             "state before it with other random draws (default 6; 1: no backtracking)")
+                             "state before it with other random draws (default 10, oracle/backtrack.py's "
+                             "SEGMENT_TRIES; 1: no backtracking)")
     parser.add_argument("--assets", type=Path, default=None, metavar="DIR",
                         help="assets root with catalog.json (default: the built-in library)")
     parser.add_argument("--render-chunk", type=int, default=RENDER_CHUNK, metavar="N", help=argparse.SUPPRESS)

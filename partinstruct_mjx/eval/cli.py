@@ -98,7 +98,8 @@ def add_eval_parser(subparsers) -> argparse.ArgumentParser:
                         help="assets root with catalog.json (default: the built-in library)")
     parser.add_argument("--oracle-tries", type=int, default=None, metavar="N",
                         help="--policy oracle: tries per grasp or touch in its look-ahead copy of the env (default "
-                             "6; 1: no look-ahead, the closed-loop oracle alone)")
+                             "10, oracle/backtrack.py's SEGMENT_TRIES; 1: no look-ahead, the closed-loop oracle "
+                             "alone)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     parser.set_defaults(func=run_eval)
     return parser
