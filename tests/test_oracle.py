@@ -774,3 +774,13 @@ def test_an_episode_no_attempt_solves_reports_its_furthest_attempt():
     assert (first.success, first.failed_skill) == (False, 3)
     assert not searched.success and searched.simulated_steps > 5 * first.simulated_steps
     assert searched.failed_skill == 3 and list(searched.segment_tries[:2]) == [0, 0]
+
+
+def test_a_push_approach_times_out_only_near_the_push_point():
+    push_point = jnp.array([0.0, 0.0, 0.07])
+    near, above = jnp.array([0.0, -0.01, 0.07]), jnp.array([0.0, 0.0, 0.25])  # above: going round over the object
+    late = machine.PUSH_APPROACH_STEPS + 1
+    assert bool(machine.push_approached(True, 0, above, push_point))
+    assert not bool(machine.push_approached(False, 5, near, push_point))
+    assert bool(machine.push_approached(False, late, near, push_point))
+    assert not bool(machine.push_approached(False, late, above, push_point))

@@ -83,6 +83,10 @@ RIDE_OVER = 0.015
 """A fingertip this far (m) past the push point along the push, out of touch, has ridden over the object (a knife,
 a flat box): it goes back round above the object (up, back at height, down behind it) instead of straight back,
 which would drag the object the wrong way."""
+PUSH_APPROACH_STEPS = 30
+PUSH_APPROACH_NEAR = 0.03
+"""A push's approach that has not touched the object after this many steps, with the fingertip this close (m) to
+the push point, pushes from there (`push_approached`)."""
 PUSH_SLIP_STEPS = 2
 """Steps a push goes on without touching before the fingertip approaches the push point again."""
 PUSH_LOOKAHEAD = 0.04
@@ -608,6 +612,14 @@ def reach_counted(effects, is_touch, stage, grip_width, previous_width):
     return effects & jnp.where(is_touch, stage >= 2, (stage >= 4) & settled)
 
 
+def push_approached(in_contact, steps, tip, push_point):
+    """A push's approach (stage 2) ends when the fingers touch the object, or after PUSH_APPROACH_STEPS with the
+    fingertip within PUSH_APPROACH_NEAR of the push point. A fingertip still going round above the object (it rode
+    over it, `over_and_back`) goes on: pushing from up there knocked a display over."""
+    near = jnp.linalg.norm(tip - push_point) < PUSH_APPROACH_NEAR
+    return in_contact | ((steps > PUSH_APPROACH_STEPS) & near)
+
+
 def push_counted(effects, touching_part, stage, pushed_enough):
     """A push is done when its effects hold and the touched part is under the fingertip, once the object went far
     enough: in stage 3 as it goes, in stages 4-5 (which come after) even if it sprang back a little as the hand let
@@ -718,7 +730,7 @@ def _act_one(o: OracleState, data, geo: PartGeometry, rows, facts, env, follow_e
     push_arrived = (jnp.linalg.norm(pos_p - push_goal) < 1e-6) & (jnp.linalg.norm(tcp - push_goal) < ARRIVED)
     push_next = jnp.select([push_stage == 0, push_stage == 1, push_stage == 2, push_stage == 3, push_stage == 4],
                            [push_arrived | (steps > 20), (push_arrived & ~crossing) | (steps > 60),
-                            in_contact | (steps > 30),
+                            push_approached(in_contact, steps, tip, push_point),
                             pushed_enough & ~touching_part, push_arrived | (steps > 20)], False)
     # Already touching where the push would start: push from there. Slipped off during the push: approach again.
     in_place = in_contact & (jnp.linalg.norm(tip - push_point) < PUSH_START_TOLERANCE)
