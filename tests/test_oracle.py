@@ -776,11 +776,13 @@ def test_an_episode_no_attempt_solves_reports_its_furthest_attempt():
     assert searched.failed_skill == 3 and list(searched.segment_tries[:2]) == [0, 0]
 
 
-def test_a_push_approach_times_out_only_near_the_push_point():
+def test_a_push_approach_times_out_only_near_the_push_point_and_stops_once_pushed_far_enough():
     push_point = jnp.array([0.0, 0.0, 0.07])
     near, above = jnp.array([0.0, -0.01, 0.07]), jnp.array([0.0, 0.0, 0.25])  # above: going round over the object
     late = machine.PUSH_APPROACH_STEPS + 1
-    assert bool(machine.push_approached(True, 0, above, push_point))
-    assert not bool(machine.push_approached(False, 5, near, push_point))
-    assert bool(machine.push_approached(False, late, near, push_point))
-    assert not bool(machine.push_approached(False, late, above, push_point))
+    assert bool(machine.push_approached(True, 0, above, push_point, False))
+    assert not bool(machine.push_approached(False, 5, near, push_point, False))
+    assert bool(machine.push_approached(False, late, near, push_point, False))
+    assert not bool(machine.push_approached(False, late, above, push_point, False))
+    # The hand pushed the object far enough on the way (no finger contact): the approach stops.
+    assert bool(machine.push_approached(False, 5, above, push_point, True))

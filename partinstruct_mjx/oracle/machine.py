@@ -612,12 +612,13 @@ def reach_counted(effects, is_touch, stage, grip_width, previous_width):
     return effects & jnp.where(is_touch, stage >= 2, (stage >= 4) & settled)
 
 
-def push_approached(in_contact, steps, tip, push_point):
-    """A push's approach (stage 2) ends when the fingers touch the object, or after PUSH_APPROACH_STEPS with the
-    fingertip within PUSH_APPROACH_NEAR of the push point. A fingertip still going round above the object (it rode
-    over it, `over_and_back`) goes on: pushing from up there knocked a display over."""
+def push_approached(in_contact, steps, tip, push_point, pushed_enough):
+    """A push's approach (stage 2) ends when the fingers touch the object, when the object already went far enough
+    (the hand, not the fingers, pushed it: a laptop's screen leaning over the push point), or after
+    PUSH_APPROACH_STEPS with the fingertip within PUSH_APPROACH_NEAR of the push point. A fingertip still going
+    round above the object (it rode over it, `over_and_back`) goes on: pushing from up there knocked a display over."""
     near = jnp.linalg.norm(tip - push_point) < PUSH_APPROACH_NEAR
-    return in_contact | ((steps > PUSH_APPROACH_STEPS) & near)
+    return in_contact | pushed_enough | ((steps > PUSH_APPROACH_STEPS) & near)
 
 
 def push_counted(effects, touching_part, stage, pushed_enough):
@@ -730,7 +731,7 @@ def _act_one(o: OracleState, data, geo: PartGeometry, rows, facts, env, follow_e
     push_arrived = (jnp.linalg.norm(pos_p - push_goal) < 1e-6) & (jnp.linalg.norm(tcp - push_goal) < ARRIVED)
     push_next = jnp.select([push_stage == 0, push_stage == 1, push_stage == 2, push_stage == 3, push_stage == 4],
                            [push_arrived | (steps > 20), (push_arrived & ~crossing) | (steps > 60),
-                            push_approached(in_contact, steps, tip, push_point),
+                            push_approached(in_contact, steps, tip, push_point, pushed_enough),
                             pushed_enough & ~touching_part, push_arrived | (steps > 20)], False)
     # Already touching where the push would start: push from there. Slipped off during the push: approach again.
     in_place = in_contact & (jnp.linalg.norm(tip - push_point) < PUSH_START_TOLERANCE)
