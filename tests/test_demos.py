@@ -183,6 +183,60 @@ def test_replay_reproduces_stored_demos(run_dir, capsys):
     assert "demos reach task success within their stored length" in out and "NO" not in out
 
 
+def test_zarr_export_stacks_every_step_in_dp3s_layout(run_dir, tmp_path, capsys):
+    zarr = pytest.importorskip("zarr")
+    stored = [demo for path in sorted((run_dir / "data").glob("*.hdf5")) for _, demo in read_demos(path)]
+    if not stored:
+        pytest.skip("the oracle succeeded on no episode, so there is no demo to export")
+    out = tmp_path / "exports" / "run.zarr"
+    assert main(["demos", "--export-zarr", str(run_dir), str(out), "--quiet"]) == 0
+    assert f"{len(stored)} demos" in capsys.readouterr().out
+    assert (out / ".zgroup").exists()  # zarr format 2, which DP3's zarr 2 reads
+    root = zarr.open_group(out, mode="r")
+    ends = np.cumsum([len(demo["actions"]) for demo in stored])
+    np.testing.assert_array_equal(root["meta/episode_ends"][:], ends)
+    np.testing.assert_array_equal(root["meta/ep_id"][:], [demo["attrs"]["ep_id"] for demo in stored])
+    joined = {key: np.concatenate(values) for key, values in {
+        "point_cloud": [d["obs"]["agentview_pcd"] for d in stored],
+        "part_point_cloud": [d["obs"]["agentview_part_pcd"] for d in stored],
+        "state": [np.concatenate([d["obs"][k] for k in ("tcp_pose", "joint_states", "gripper_state")], -1)
+                  for d in stored],
+        "object_pose": [d["obs"]["object_pose"] for d in stored],
+        "action": [d["actions"] for d in stored], "skill_index": [d["skill_index"] for d in stored]}.items()}
+    for key, expected in joined.items():
+        np.testing.assert_array_equal(root["data"][key][:], expected, err_msg=key)
+    first = root.attrs["episodes"][0]
+    assert first["task_instruction"] == stored[0]["attrs"]["task_instruction"] and first["skill_instructions"]
+    assert root.attrs["env_args"]["env_name"] == "PartInstructMJX"
+
+
+def test_zarr_export_refuses_bad_input_and_leaves_nothing(run_dir, tmp_path, capsys):
+    pytest.importorskip("zarr")
+    import shutil
+
+    import h5py
+
+    taken = tmp_path / "taken.zarr"
+    taken.mkdir()
+    (taken / "mine").write_text("keep")
+    assert main(["demos", "--export-zarr", str(run_dir), str(taken), "--quiet"]) == 2
+    assert "already exists" in capsys.readouterr().err and (taken / "mine").read_text() == "keep"
+    assert main(["demos", "--export-zarr", str(tmp_path), str(tmp_path / "a.zarr"), "--quiet"]) == 2
+    assert "not a demos run directory" in capsys.readouterr().err
+    assert main(["demos", "--export-zarr", str(run_dir), str(tmp_path / "b.zarr"), "--categories", "mug"]) == 2
+    assert "no demos of mug" in capsys.readouterr().err
+    files = sorted((run_dir / "data").glob("*.hdf5"))
+    if not files:
+        pytest.skip("the oracle succeeded on no episode, so there is no demo to break")
+    broken = tmp_path / "broken"
+    shutil.copytree(run_dir, broken)
+    with h5py.File(broken / "data" / files[0].name, "a") as file:
+        del file["data"][sorted(file["data"])[-1]]["obs"]["joint_states"]
+    assert main(["demos", "--export-zarr", str(broken), str(tmp_path / "c.zarr"), "--quiet"]) == 2
+    assert "obs/joint_states" in capsys.readouterr().err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["broken", "taken.zarr"]
+
+
 def test_episode_choice_spreads_over_types_and_categories():
     ten = select_episodes("train", 10)
     assert sorted(e.task_type for e in ten) == list(range(1, 11))
@@ -254,7 +308,7 @@ def test_bad_input_exits_2(tmp_path, capsys, args, message):
 
 def test_help_explains_outputs_and_resume(command_help):
     out = command_help("demos")
-    assert "data/<category>.hdf5" in out and "resume" in out and "--replay" in out
+    assert "data/<category>.hdf5" in out and "resume" in out and "--replay" in out and "--export-zarr" in out
 
 
 def test_generating_for_every_split_is_refused_by_name():

@@ -43,6 +43,11 @@ takes the next one) and committed every --batch-size finished episodes; the clou
 episodes cost about as much as the simulation ('stride' sampling; 'fps', the original's, is several times slower).
 `partinstruct bench demos` measures demos/hour on this machine.
 
+export: --export-zarr DIR OUT writes DIR's demos (--categories: only those) to the zarr store OUT in 3D Diffusion
+Policy's layout (data/point_cloud, data/part_point_cloud, data/state, data/action, ..., meta/episode_ends; zarr
+format 2, as DP3 reads it), for training with DP3's own code; needs `pip install "partinstruct-mjx[zarr]"`.
+docs/training.md lists every array.
+
 replay: --replay DIR (or one of its .hdf5 files) re-simulates the stored demos in fresh envs from their episodes
 and reports whether each reaches task success within its stored length (--skill-mode also checks skill-mode
 success); exit 1 if any does not.
@@ -99,6 +104,10 @@ def add_demos_parser(subparsers) -> argparse.ArgumentParser:
                         help="replay the demos of a run directory or one of its HDF5 files instead of synthesizing")
     replay.add_argument("--skill-mode", action="store_true", help="with --replay: also check skill-mode success")
     replay.add_argument("--limit", type=int, default=None, metavar="N", help="with --replay: only the first N demos")
+    export = parser.add_argument_group("export")
+    export.add_argument("--export-zarr", nargs=2, type=Path, default=None, metavar=("DIR", "OUT"),
+                        help="write the demos of run directory DIR to a new zarr store OUT (3D Diffusion Policy's "
+                             "layout) instead of synthesizing")
     parser.set_defaults(func=run_demos)
     return parser
 
@@ -107,6 +116,12 @@ def run_demos(args: argparse.Namespace) -> int:
     """Synthesize (or replay); project errors reach the main command, which exits 2."""
     from partinstruct_mjx.jax_setup import enable_compilation_cache
 
+    if args.export_zarr is not None:
+        from partinstruct_mjx.data.zarr_export import export_zarr
+
+        written = export_zarr(*args.export_zarr, categories=args.categories, progress=not args.quiet)
+        print(f"{written['path']}: {written['demos']} demos, {written['steps']} steps")
+        return 0
     enable_compilation_cache()
     if args.replay is not None:
         from partinstruct_mjx.data.replay import replay_demos, replay_table
