@@ -113,6 +113,12 @@ RECENTRE_ACCELERATION = 0.001
 the TCP swings it round the grasp) carries it back, holding the part on its goal, until within RECENTRE_DONE or
 after RECENTRE_STEPS; the carry's speed grows by RECENTRE_ACCELERATION per step up to CARRY_SPEED. The task's AT
 goals (0.05-0.08 m) judge the object where the moves before the turn put it."""
+SETTLE_GAP = 0.001
+SETTLE_SPEED = 0.002
+"""Where the task's current goals include ON, a turn on the table or a carry of the object held on it (a slide)
+lowers the hand, by at most SETTLE_SPEED (m) per step, while the object's lowest point is more than SETTLE_GAP
+above the table, and ends only with the object on it: a dispenser turned on the table rose 1.4 cm in the pads and
+a kitchen pot 4 mm in its slide, and ON (2 mm) never held."""
 AIR_TURN_LEVER_WEIGHT = 20.0
 """Grasp score lost per metre between the object's middle and the pinch axis in chains that turn the object in the
 air (candidates.grasp_candidates' lever_weight)."""
@@ -512,8 +518,9 @@ def act(oracle: OracleState, data, task: progress.TaskState, geometry: PartGeome
     # The spatial parts `_act_one` judges the skill with (the env's while it follows the env on the same skill).
     synced = follow_env & (task.skill_index == oracle.skill)
     facts = progress.goal_facts(data, geometry, jnp.where(synced[:, None, None], task.masks, oracle.masks), rows)
-    oracle = jax.vmap(partial(_act_one, follow_env=follow_env), in_axes=(0, 0, None, 0, 0, 0))(
-        oracle, data, geometry, rows, facts, follow)
+    keep_on = (progress.rows_at(task.phases, task.phase).kind == progress.GOAL_KINDS.index("ON")).any(axis=-1)
+    oracle = jax.vmap(partial(_act_one, follow_env=follow_env), in_axes=(0, 0, None, 0, 0, 0, 0))(
+        oracle, data, geometry, rows, facts, follow, keep_on)
     oracle = oracle.replace(masks=_resampled_masks(oracle.skill != before, oracle.masks, data, geometry))
     euler = quat_to_euler_xyz(oracle.cmd_quat)
     return oracle, jnp.concatenate([oracle.cmd_pos, euler, oracle.finger[:, None]], axis=1)
@@ -628,7 +635,7 @@ def push_counted(effects, touching_part, stage, pushed_enough):
     return effects & touching_part & ((stage >= 4) | ((stage == 3) & pushed_enough))
 
 
-def _act_one(o: OracleState, data, geo: PartGeometry, rows, facts, env, follow_env: bool):
+def _act_one(o: OracleState, data, geo: PartGeometry, rows, facts, env, keep_on, follow_env: bool):
     env_skill, env_p0, env_masks = env
     if follow_env:
         # While the machine is on the env's skill it judges it as the env does; once the env has counted a skill the
@@ -653,6 +660,12 @@ def _act_one(o: OracleState, data, geo: PartGeometry, rows, facts, env, follow_e
     focus_points, focus_valid = predicates.part_cloud(data, geo, env_masks, focus_part)
 
     object_top = _top(whole_points, whole_valid)
+    lowest = jnp.where(whole_valid, whole_points[:, 2], jnp.inf).min()
+    # The task needs the object on the table (ON) while it is turned on the table or slid along it (SETTLE_GAP).
+    settle = keep_on & (((kind == ROTATE) & o.on_table_turn[index])
+                        | ((kind == MOVE) & o.grasping[index] & ~o.put_down[index]))
+    down = settle & (lowest > TABLE_HEIGHT + SETTLE_GAP)
+    on_table = lowest <= TABLE_HEIGHT + predicates.ON_TABLE_DISTANCE
 
     # Grasp / touch: 0 wait for a plan, 1 via point, 2 pre-pose, 3 approach, 4 close, 5 judge, 6 back off.
     pre, via = approach_waypoints(o.target_pos, o.approach)
@@ -739,7 +752,7 @@ def _act_one(o: OracleState, data, geo: PartGeometry, rows, facts, env, follow_e
     move_stage = jnp.where(push, jnp.select([(push_stage == 0) & in_place, slipped], [3, 2], push_stage + push_next),
                            stage)
     move_done = jnp.where(push, push_counted(effects, touching_part, push_stage, pushed_enough),
-                          effects & (put_down | (jnp.linalg.norm(error) < MOVE_TOLERANCE)))
+                          effects & (put_down | (jnp.linalg.norm(error) < MOVE_TOLERANCE)) & (~settle | on_table))
 
     # Rotate: turn the hand so the part's direction from the object origin reaches the goal direction.
     vector = predicates.masked_mean(focus_points, focus_valid) - data.object_pos
@@ -767,7 +780,6 @@ def _act_one(o: OracleState, data, geo: PartGeometry, rows, facts, env, follow_e
     pos_1 = pos_1 + o.turn_raise * jnp.minimum(1.0, 2.0 * turn_progress) * up
     # 3 carry the object back to where the turn started (on the table: sideways only; in the air: clear of it).
     back = (o.p0 - data.object_pos) * jnp.where(flat, jnp.array([1.0, 1.0, 0.0]), 1.0)
-    lowest = jnp.where(whole_valid, whole_points[:, 2], jnp.inf).min()
     back = jnp.where(flat, back, back.at[2].set(jnp.maximum(back[2], TABLE_HEIGHT + rotation.TABLE_CLEARANCE - lowest)))
     recentre_speed = jnp.minimum(CARRY_SPEED, RECENTRE_ACCELERATION * (steps + 1))
     pos_3, _ = _toward(o.cmd_pos, o.cmd_quat, o.anchor_pos, o.cmd_quat, recentre_speed, TURN_SPEED)
@@ -782,7 +794,7 @@ def _act_one(o: OracleState, data, geo: PartGeometry, rows, facts, env, follow_e
     turn_stage = jnp.select([faces & displaced, (stage == 1) & (turn_progress >= 1.0)
                              & (jnp.linalg.norm(tcp - pos_1) < ARRIVED), (stage == 3) & recentred & ~still_faces],
                             [3, 2, 2], stage)
-    rotate_done = (faces & ~displaced) | ((stage == 3) & still_faces & recentred)
+    rotate_done = ((faces & ~displaced) | ((stage == 3) & still_faces & recentred)) & (~settle | on_table)
     # The carry back heads for a goal fixed when it starts (the TCP then, moved by the object's offset): a goal
     # following the measured TCP ran away where the arm could not follow.
     anchor_pos = jnp.where((kind == ROTATE) & (stage != 3) & (turn_stage == 3), tcp + back, o.anchor_pos)
@@ -797,6 +809,8 @@ def _act_one(o: OracleState, data, geo: PartGeometry, rows, facts, env, follow_e
     release_done = effects & (stage >= 2) & release_next
 
     pos = jnp.select([kind <= TOUCH, kind == MOVE, kind == ROTATE], [pos_r, pos_m, pos_t], pos_l)
+    pos = pos.at[2].set(jnp.where(down, jnp.minimum(pos[2], tcp[2] - jnp.minimum(lowest - TABLE_HEIGHT, SETTLE_SPEED)),
+                                  pos[2]))
     quat = jnp.select([kind <= TOUCH, kind == MOVE, kind == ROTATE], [quat_r, quat_m, quat_t], o.cmd_quat)
     holding = (kind == ROTATE) | ((kind == MOVE) & (o.grasping[index] | push))
     finger = jnp.select([kind <= TOUCH, kind == RELEASE, holding], [reach_finger, panda.FINGER_OPEN,
