@@ -728,30 +728,53 @@ def test_the_lazy_outlook_picks_the_candidate_checking_every_one_picks():
                 np.testing.assert_array_equal(every.target_pos, expected)
 
 
+def _first_try(tmp_path, category: str, split: str, type_id: int, record: dict):
+    """The oracle's first try (key 0, no backtracking) on one episode given as a metadata record."""
+    from partinstruct_mjx.assets.partnet import category_slug
+    from partinstruct_mjx.tasks.episodes import read_metadata
+
+    path = tmp_path / "episode.json"
+    path.write_text(json.dumps({category: {split: {str(type_id): [record]}}}))
+    [episode] = read_metadata(path)
+    xml = assets_root() / "objects" / category_slug(episode.obj_class) / episode.obj_id / "object.xml"
+    with PartInstructEnv(xml, 1, EnvConfig(skill_mode=False)) as env:
+        [run] = run_oracle(env, [episode], jax.random.PRNGKey(0), record=False, tries=1)
+    return run
+
+
 @pytest.mark.slow
 def test_a_slide_the_task_needs_on_the_table_ends_on_it(tmp_path):
     """kitchen_pot_007, type 13 (880 draw, episode 4000162): turned on the table, then carried backwards, and the task's
     last phase needs it ON the table. The pot rose 4 mm in the pads and the slide held it there (ON allows 2 mm): the
     chain ended without task success. The hand now lowers it (machine.SETTLE_GAP) and the move ends with it down."""
-    from partinstruct_mjx.assets.partnet import category_slug
-    from partinstruct_mjx.tasks.episodes import read_metadata
+    run = _first_try(tmp_path, "kitchen pot", "test4", 13, {
+        "obj_id": "kitchen_pot_007", "ep_id": 4000162, "chain_params": [
+            {"skill_name": "grasp_obj", "params": {"part_grasp": "front"}},
+            {"skill_name": "rotate_obj", "params": {"part_rotate": "back", "dir_rotate": "right"}},
+            {"skill_name": "move_gripper", "params": {"dir_move": "back", "grasping": True, "touching": False,
+                                                      "put_down": False}}],
+        "task_instruction": "Turn the back part of the kitchen pot to point to the right while keeping it on the "
+                            "table, then push it backwards",
+        "obj_pose": [0.0, 0.0, 0.8602073958108155, 0.5099443461715946, 0.0028286255305858612, -0.08224399575849728,
+                     0.0], "obj_scale": 1.0, "seed": 1760267286})
+    assert run.success and run.failed_skill == -1
 
-    record = {"obj_id": "kitchen_pot_007", "ep_id": 4000162, "chain_params": [
-        {"skill_name": "grasp_obj", "params": {"part_grasp": "front"}},
-        {"skill_name": "rotate_obj", "params": {"part_rotate": "back", "dir_rotate": "right"}},
-        {"skill_name": "move_gripper", "params": {"dir_move": "back", "grasping": True, "touching": False,
-                                                  "put_down": False}}],
-              "task_instruction": "Turn the back part of the kitchen pot to point to the right while keeping it on "
-                                  "the table, then push it backwards",
-              "obj_pose": [0.0, 0.0, 0.8602073958108155, 0.5099443461715946, 0.0028286255305858612,
-                           -0.08224399575849728, 0.0], "obj_scale": 1.0, "seed": 1760267286}
-    path = tmp_path / "pot.json"
-    path.write_text(json.dumps({"kitchen pot": {"test4": {"13": [record]}}}))
-    [episode] = read_metadata(path)
-    xml = assets_root() / "objects" / category_slug(episode.obj_class) / episode.obj_id / "object.xml"
-    env = PartInstructEnv(xml, 1, EnvConfig(skill_mode=False))
-    with env:
-        [run] = run_oracle(env, [episode], jax.random.PRNGKey(0), record=False, tries=1)
+
+@pytest.mark.slow
+def test_a_push_whose_touch_the_task_has_counted_is_not_touched_again(tmp_path):
+    """laptop_002, type 6 (880 draw, episode 376): the push took the laptop far enough with the screen frame touched,
+    so the task's first phase held; the fingertip then ended off the frame and the push went to touch it again, which
+    it never did (all 10 tries failed there). The second phase (release) needs no touch: the push now ends."""
+    run = _first_try(tmp_path, "laptop", "train", 6, {
+        "obj_id": "laptop_002", "ep_id": 376, "chain_params": [
+            {"skill_name": "touch_obj", "params": {"part_touch": "screen frame"}},
+            {"skill_name": "move_gripper", "params": {"dir_move": "right", "grasping": False, "touching": True,
+                                                      "put_down": False}},
+            {"skill_name": "release_obj", "params": {}}],
+        "task_instruction": "Press against the screen frame of the laptop to push it to the right, then move the "
+                            "gripper away",
+        "obj_pose": [0.0, 0.0, 0.203027887203744, 0.9791729556199884, -0.03982331624882284, 0.14188908374061115, 0.0],
+        "obj_scale": 1.0, "seed": 1706665034})
     assert run.success and run.failed_skill == -1
 
 

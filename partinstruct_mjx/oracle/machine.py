@@ -518,9 +518,9 @@ def act(oracle: OracleState, data, task: progress.TaskState, geometry: PartGeome
     # The spatial parts `_act_one` judges the skill with (the env's while it follows the env on the same skill).
     synced = follow_env & (task.skill_index == oracle.skill)
     facts = progress.goal_facts(data, geometry, jnp.where(synced[:, None, None], task.masks, oracle.masks), rows)
-    keep_on = (progress.rows_at(task.phases, task.phase).kind == progress.GOAL_KINDS.index("ON")).any(axis=-1)
+    phase_goals = progress.rows_at(task.phases, task.phase).kind
     oracle = jax.vmap(partial(_act_one, follow_env=follow_env), in_axes=(0, 0, None, 0, 0, 0, 0))(
-        oracle, data, geometry, rows, facts, follow, keep_on)
+        oracle, data, geometry, rows, facts, follow, phase_goals)
     oracle = oracle.replace(masks=_resampled_masks(oracle.skill != before, oracle.masks, data, geometry))
     euler = quat_to_euler_xyz(oracle.cmd_quat)
     return oracle, jnp.concatenate([oracle.cmd_pos, euler, oracle.finger[:, None]], axis=1)
@@ -635,8 +635,12 @@ def push_counted(effects, touching_part, stage, pushed_enough):
     return effects & touching_part & ((stage >= 4) | ((stage == 3) & pushed_enough))
 
 
-def _act_one(o: OracleState, data, geo: PartGeometry, rows, facts, env, keep_on, follow_env: bool):
+def _act_one(o: OracleState, data, geo: PartGeometry, rows, facts, env, phase_goals, follow_env: bool):
+    """One environment's step. phase_goals: the kinds of the goals of the env's current task phase."""
     env_skill, env_p0, env_masks = env
+    keep_on = (phase_goals == progress.GOAL_KINDS.index("ON")).any()
+    # In task mode a push touches its part again (stages 4-5) only for a task goal that names it still to come.
+    retouch = follow_env | (phase_goals == progress.GOAL_KINDS.index("TOUCHING")).any()
     if follow_env:
         # While the machine is on the env's skill it judges it as the env does; once the env has counted a skill the
         # machine still finishes it (see below) with the p0 it had.
@@ -751,7 +755,7 @@ def _act_one(o: OracleState, data, geo: PartGeometry, rows, facts, env, keep_on,
     slipped = (push_stage == 3) & ~pushed_enough & (o.lost >= PUSH_SLIP_STEPS)
     move_stage = jnp.where(push, jnp.select([(push_stage == 0) & in_place, slipped], [3, 2], push_stage + push_next),
                            stage)
-    move_done = jnp.where(push, push_counted(effects, touching_part, push_stage, pushed_enough),
+    move_done = jnp.where(push, push_counted(effects, touching_part | ~retouch, push_stage, pushed_enough),
                           effects & (put_down | (jnp.linalg.norm(error) < MOVE_TOLERANCE)) & (~settle | on_table))
 
     # Rotate: turn the hand so the part's direction from the object origin reaches the goal direction.
