@@ -779,6 +779,23 @@ def test_a_push_whose_touch_the_task_has_counted_is_not_touched_again(tmp_path):
 
 
 @pytest.mark.slow
+def test_touching_again_after_a_push_goes_on_until_the_part_is_touched(tmp_path):
+    """scissors_007, type 4 (880 draw, episode 468): pushed forwards far enough, the fingertip went to touch the
+    scissors' top part again and stopped 1.1 cm from it (TOUCHING needs 1 cm), near the other blade, with no finger
+    pressing anything; it stayed there until the move ran out. Touching again now stops only once the part is
+    touched or a finger presses the object."""
+    run = _first_try(tmp_path, "scissors", "train", 4, {
+        "obj_id": "scissors_007", "ep_id": 468, "chain_params": [
+            {"skill_name": "touch_obj", "params": {"part_touch": "top"}},
+            {"skill_name": "move_gripper", "params": {"dir_move": "front", "grasping": False, "touching": True,
+                                                      "put_down": False}}],
+        "task_instruction": "Nudge the scissors forwards, pressing against its top part",
+        "obj_pose": [0.0, 0.0, -0.1801973324830036, 0.9836304800919956, -0.044622631668558885,
+                     -0.02909930829891235, 0.0], "obj_scale": 1.0, "seed": 3548048877})
+    assert run.success and run.failed_skill == -1
+
+
+@pytest.mark.slow
 def test_a_pinch_on_thin_blades_holds_with_the_contact_split():
     """scissors_004 picked by its top part (both blades, 1.25 cm across their edges) and carried: at 5 ms physics
     steps the pads' contacts chatter and one pad tunnels through the blades within 20 steps of the lift; with each

@@ -736,8 +736,11 @@ def _act_one(o: OracleState, data, geo: PartGeometry, rows, facts, env, phase_go
                             retouch_point - RETOUCH_BACK * direction + tip_to_tcp,
                             retouch_point + RIM_OVER * direction + tip_to_tcp])
     push_stage = jnp.clip(stage, 0, 5)
-    # Touching again stops at the object (the pads may press it before TOUCHING's fingertip point is near).
-    push_goal = jnp.where((push_stage == 5) & in_contact, o.cmd_pos, push_goals[push_stage])
+    # Touching again stops once the part is touched or the fingers press the object (the pads may press it before
+    # TOUCHING's fingertip point is near); a fingertip merely near the object goes on (it stopped 1.1 cm from a flat
+    # scissors' blade, TOUCHING needs 1 cm, and stayed there).
+    retouched = touching_part | predicates.finger_on_object(data, geo)
+    push_goal = jnp.where((push_stage == 5) & retouched, o.cmd_pos, push_goals[push_stage])
     push_goal = jnp.where(push_stage == 2, over_and_back(push_goal, o.cmd_pos, tip, push_point, direction, z_axis,
                                                          object_top, in_contact), push_goal)
     push_turn = jnp.where((push_stage == 1) | (push_stage == 2), push_quat, o.cmd_quat)
