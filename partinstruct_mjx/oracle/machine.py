@@ -714,7 +714,8 @@ def _act_one(o: OracleState, data, geo: PartGeometry, rows, facts, env, phase_go
     touching_now = predicates.touching_points(data, whole_points, whole_valid)
     touching_part = predicates.touching_points(data, focus_points, focus_valid)
     # The fingers press the object (TOUCHING's fingertip point may still be more than 1 cm from it).
-    in_contact = touching_now | predicates.finger_on_object(data, geo)
+    pressing = predicates.finger_on_object(data, geo)
+    in_contact = touching_now | pressing
     tip = tcp + predicates.FINGERTIP_OFFSET * quat_rotate(o.cmd_quat, up)
     # Pure pursuit: head for the point PUSH_LOOKAHEAD ahead of the object on the line p0 -> goal, so a sideways
     # drift is pushed back onto the line; the fingertip keeps to the line through the object's middle along it.
@@ -739,8 +740,7 @@ def _act_one(o: OracleState, data, geo: PartGeometry, rows, facts, env, phase_go
     # Touching again stops once the part is touched or the fingers press the object (the pads may press it before
     # TOUCHING's fingertip point is near); a fingertip merely near the object goes on (it stopped 1.1 cm from a flat
     # scissors' blade, TOUCHING needs 1 cm, and stayed there).
-    retouched = touching_part | predicates.finger_on_object(data, geo)
-    push_goal = jnp.where((push_stage == 5) & retouched, o.cmd_pos, push_goals[push_stage])
+    push_goal = jnp.where((push_stage == 5) & (touching_part | pressing), o.cmd_pos, push_goals[push_stage])
     push_goal = jnp.where(push_stage == 2, over_and_back(push_goal, o.cmd_pos, tip, push_point, direction, z_axis,
                                                          object_top, in_contact), push_goal)
     push_turn = jnp.where((push_stage == 1) | (push_stage == 2), push_quat, o.cmd_quat)
