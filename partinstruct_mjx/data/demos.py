@@ -113,6 +113,19 @@ def read_ledger(out_dir: str | os.PathLike) -> dict | None:
     return json.loads(path.read_text()) if path.exists() else None
 
 
+def demo_files(data_dir: str | os.PathLike) -> list[Path]:
+    """The robomimic files of a `partinstruct demos` run directory; DataError naming what is missing."""
+    data_dir = Path(data_dir)
+    if not data_dir.is_dir():
+        raise DataError(f"{data_dir}: no such data directory (expected the --out directory of `partinstruct demos`)")
+    files = sorted((data_dir / "data").glob("*.hdf5"))
+    if not files:
+        raise DataError(f"{data_dir}: no demonstration files data/*.hdf5, not a demos run directory; run "
+                        f"`partinstruct demos --out {data_dir}` first (it writes them when it finishes or is "
+                        "interrupted)")
+    return files
+
+
 def check_env_args(out_dir: str | os.PathLike, env_args: dict) -> None:
     """Refuse (DataError) a run directory that was started with other env_args; a new directory passes."""
     ledger = read_ledger(out_dir)

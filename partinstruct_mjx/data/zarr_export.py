@@ -26,7 +26,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from partinstruct_mjx.data.demos import read_demos
+from partinstruct_mjx.data.demos import demo_files, read_demos
 from partinstruct_mjx.errors import DataError
 
 RENAMED = {"agentview_pcd": "point_cloud", "agentview_part_pcd": "part_point_cloud"}
@@ -138,17 +138,12 @@ def _episode_record(demo: dict, category: str) -> dict:
 
 def _category_files(run_dir: Path, categories) -> list[Path]:
     """The run's per-category HDF5 files, those of `categories` only if given."""
-    if not (run_dir / "data").is_dir():
-        raise DataError(f"{run_dir}: no data/ directory; not a demos run directory (partinstruct demos --out)")
-    files = sorted((run_dir / "data").glob("*.hdf5"))
+    files = demo_files(run_dir)
     if categories:
         unknown = sorted(set(categories) - {path.stem for path in files})
         if unknown:
-            raise DataError(f"{run_dir}: no demos of {', '.join(unknown)}; it holds "
-                            f"{', '.join(p.stem for p in files) or 'none'}")
+            raise DataError(f"{run_dir}: no demos of {', '.join(unknown)}; it holds {', '.join(p.stem for p in files)}")
         files = [path for path in files if path.stem in set(categories)]
-    if not files:
-        raise DataError(f"{run_dir}: no demos to export (data/ holds no .hdf5 file)")
     return files
 
 

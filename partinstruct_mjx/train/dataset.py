@@ -21,7 +21,7 @@ import h5py
 import numpy as np
 
 from partinstruct_mjx.atomic import atomic_path
-from partinstruct_mjx.data.demos import ACTION_SIZE
+from partinstruct_mjx.data.demos import ACTION_SIZE, demo_files
 from partinstruct_mjx.errors import DataError
 from partinstruct_mjx.train import features
 from partinstruct_mjx.train.config import CLOUD_CHANNELS, ModelConfig
@@ -55,18 +55,6 @@ class DemoData:
         return {"files": self.files, "demos": len(self.episode_ends), "steps": int(self.episode_ends[-1]),
                 "instructions": len(self.instructions), "pcd_sampler": self.sampler,
                 "cloud_shape": list(self.clouds.shape[1:])}
-
-
-def demo_files(data_dir: str | os.PathLike) -> list[Path]:
-    """The robomimic files of a `partinstruct demos` run directory; DataError naming what is missing."""
-    data_dir = Path(data_dir)
-    if not data_dir.is_dir():
-        raise DataError(f"{data_dir}: no such data directory (expected the --out directory of `partinstruct demos`)")
-    files = sorted((data_dir / "data").glob("*.hdf5"))
-    if not files:
-        raise DataError(f"{data_dir}: no demonstration files data/*.hdf5; run `partinstruct demos --out {data_dir}` "
-                        "first (it writes them when it finishes or is interrupted)")
-    return files
 
 
 def load_demos(data_dir: str | os.PathLike, cloud_key: str, instructions: str = "skill",
