@@ -14,7 +14,7 @@ from partinstruct_mjx.assets.catalog import load_catalog
 from partinstruct_mjx.control import jax_ik
 from partinstruct_mjx.control.rotations import axis_angle_to_quat, quat_rotate
 from partinstruct_mjx.env import EnvConfig, PartInstructEnv, hold_action
-from partinstruct_mjx.oracle import backtrack, candidates, machine, pushing, rollout, rotation
+from partinstruct_mjx.oracle import backtrack, candidates, lookahead, machine, pushing, rollout, rotation
 from partinstruct_mjx.oracle.rollout import OraclePolicy, run_oracle
 from partinstruct_mjx.paths import assets_root
 from partinstruct_mjx.sim import panda
@@ -573,18 +573,17 @@ def _cylinder(base, radius, height, rings):
                      base[2] + heights.ravel()], axis=1)
 
 
-def _planned_turn(points, hand_pos, closing, object_pos, v, d, on_table, settle=False):
-    """rotation.plan for a hand holding the object from above at `hand_pos` (pads closing along `closing`), the arm
-    solved there from home: (found, axis, angle, pivot, raise)."""
+def _planned_turn(points, hand_pos, closing, object_pos, v, d, on_table, settle=False, approach=(0.0, 0.0, -1.0)):
+    """rotation.plan for a hand holding the object at `hand_pos` (from above unless `approach` says otherwise, pads
+    closing along `closing`), the arm solved there from home: a rotation.TurnPlan."""
     kinematics = jax_ik.ArmKinematics.from_scene(build_scene())
-    hand_quat = candidates.tcp_quat(jnp.array([0.0, 0.0, -1.0]), closing)
+    hand_quat = candidates.tcp_quat(jnp.asarray(approach, jnp.float32), closing)
     q, _, _ = jax_ik.solve_ik(kinematics, jnp.asarray(HOME_ARM_QPOS, jnp.float32)[None], hand_pos[None],
                               hand_quat[None])
-    found, axis, angle, pivot, raise_by, _ = jax.jit(rotation.plan)(
+    return jax.jit(rotation.plan)(
         kinematics, q[0], hand_pos, hand_quat, jnp.asarray(object_pos, jnp.float32), jnp.asarray(points, jnp.float32),
         jnp.ones(len(points), bool), jnp.asarray(v, jnp.float32), jnp.asarray(d, jnp.float32), jnp.asarray(on_table),
         jnp.asarray(settle))
-    return found, axis, angle, pivot, raise_by
 
 
 def test_a_turn_on_the_table_spins_the_object_about_its_footprint():
@@ -592,7 +591,7 @@ def test_a_turn_on_the_table_spins_the_object_about_its_footprint():
     # round on the table (a bottle twisted out of the fingers so); the plan spins it in place about its footprint.
     centre = np.array([0.05, 0.0, TABLE_HEIGHT])
     hand_pos = jnp.array(centre + [0.025, 0.0, 0.10], jnp.float32)
-    found, axis, angle, pivot, _ = _planned_turn(
+    found, axis, angle, pivot, *_ = _planned_turn(
         _cylinder(centre, 0.03, 0.12, 7), hand_pos, jnp.array([0.0, 1.0, 0.0]), centre + [0.0, 0.0, 0.06],
         [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], on_table=True)
     assert bool(found)
@@ -607,7 +606,7 @@ def test_a_turn_in_the_air_keeps_the_hand_above_the_table():
     base = np.array([0.05, 0.0, TABLE_HEIGHT + 0.10])
     hand_pos = jnp.array(base + [0.04, 0.0, 0.09], jnp.float32)
     closing = jnp.array([1.0, 0.0, 0.0])
-    found, axis, angle, pivot, raise_by = _planned_turn(
+    found, axis, angle, pivot, raise_by, *_ = _planned_turn(
         _cylinder(base, 0.04, 0.10, 6), hand_pos, closing, base, [0.0, 0.0, 0.08], [0.0, 0.0, -1.0], on_table=False)
     assert bool(found) and float(angle) > 2.5
     hand_quat = candidates.tcp_quat(jnp.array([0.0, 0.0, -1.0]), closing)
@@ -629,8 +628,8 @@ def test_a_turn_before_a_put_down_keeps_the_hand_above_the_objects_lowest_point(
     hand_quat = candidates.tcp_quat(jnp.array([0.0, 0.0, -1.0]), closing)
 
     def hand_above_object(settle):
-        found, axis, angle, pivot, raise_by = _planned_turn(points, hand_pos, closing, centre, [0.0, 0.0, 0.03],
-                                                            [-1.0, 0.0, 0.0], on_table=False, settle=settle)
+        found, axis, angle, pivot, raise_by, *_ = _planned_turn(points, hand_pos, closing, centre, [0.0, 0.0, 0.03],
+                                                                [-1.0, 0.0, 0.0], on_table=False, settle=settle)
         assert bool(found)
         pos, quat = rotation.turned_pose(pivot, axis, angle, 1.0, hand_pos, hand_quat)
         turned = pivot + quat_rotate(axis_angle_to_quat(axis, angle), jnp.asarray(points, jnp.float32) - pivot)
@@ -638,6 +637,22 @@ def test_a_turn_before_a_put_down_keeps_the_hand_above_the_objects_lowest_point(
 
     assert hand_above_object(False) < -0.05
     assert hand_above_object(True) > -rotation.PUT_DOWN_SLACK
+
+
+def test_a_turn_fits_the_task_only_if_the_object_ends_near_where_it_was():
+    # A 6 x 6 x 10 cm box, 12 cm over the table, turned upside down. Held from above, the hand ends under it and must
+    # stay above the table, so the box ends too high for the AT goal after the turn; held from the side, the wrist
+    # rolls it over in place.
+    centre = np.array([0.3, 0.0, TABLE_HEIGHT + 0.17])
+    xs, ys, zs = np.meshgrid(*[np.linspace(-s / 2, s / 2, 7) for s in (0.06, 0.06, 0.10)])
+    points = np.stack([xs.ravel(), ys.ravel(), zs.ravel()], axis=1) + centre
+    closing = jnp.array([1.0, 0.0, 0.0])
+    from_above = _planned_turn(points, jnp.array(centre + [0.0, 0.0, 0.03], jnp.float32), closing, centre,
+                               [0.0, 0.0, 0.05], [0.0, 0.0, -1.0], on_table=False)
+    from_side = _planned_turn(points, jnp.array(centre, jnp.float32), jnp.array([0.0, 1.0, 0.0]), centre,
+                              [0.0, 0.0, 0.05], [0.0, 0.0, -1.0], on_table=False, approach=(1.0, 0.0, 0.0))
+    assert bool(from_above.found) and not bool(from_above.fits)
+    assert bool(from_side.found) and bool(from_side.fits)
 
 
 def test_touching_again_after_a_push_aims_over_the_rear_faces_top():
@@ -652,7 +667,8 @@ def test_touching_again_after_a_push_aims_over_the_rear_faces_top():
 
 def test_grasp_reach_is_checked_in_rank_order_chunk_by_chunk():
     # 3 chunks of candidate poses: the first out of reach (1.5 m behind the robot's base), the second and third
-    # within it. The next chunk is checked only while fewer poses are reachable than the attempt needs.
+    # within it. The next chunk is checked only while fewer poses are in the outlook's best tier than the attempt
+    # needs.
     kinematics = jax_ik.ArmKinematics.from_scene(build_scene())
     size = 2 * machine.PLAN_CANDIDATES
     far, near = jnp.array([-0.9, 0.0, 0.3]), jnp.array([0.3, 0.0, 0.25])
@@ -661,12 +677,35 @@ def test_grasp_reach_is_checked_in_rank_order_chunk_by_chunk():
     quats = jnp.tile(candidates.tcp_quat(down, jnp.array([0.0, 1.0, 0.0])), (3 * size, 1))
     axes, usable = jnp.tile(down, (3 * size, 1)), jnp.ones(3 * size, bool)
     q = jnp.asarray(HOME_ARM_QPOS, jnp.float32)
-    check = jax.jit(partial(machine._reach_in_rank_order, kinematics, q, positions, quats, axes, usable,
-                            jnp.asarray(TABLE_HEIGHT)))
-    one = np.asarray(check(1)[0])
-    assert not one[:size].any() and one[size:2 * size].all() and not one[2 * size:].any()
-    more = np.asarray(check(size + 1)[0])
-    assert not more[:size].any() and more[size:].all()
+
+    def check(wanted, tier_of):
+        return [np.asarray(x) for x in jax.jit(partial(machine._rank_in_chunks, tier_of=tier_of), static_argnums=7)(
+            kinematics, q, positions, quats, axes, usable, jnp.asarray(TABLE_HEIGHT), wanted)]
+
+    def fits(i, joints):
+        return jnp.asarray(lookahead.CLEAR_AND_FITS)
+
+    reachable, tiers = check(1, fits)
+    assert not reachable[:size].any() and reachable[size:2 * size].all() and not reachable[2 * size:].any()
+    assert tiers[size] == lookahead.CLEAR_AND_FITS and (tiers[size + 1:] == lookahead.BLOCKED).all()
+    reachable, _ = check(size + 1, fits)
+    assert not reachable[:size].any() and reachable[size:].all()
+    # None of the second chunk fits the task: the third is checked too.
+    reachable, tiers = check(1, lambda i, joints: jnp.where(i < 2 * size, lookahead.CLEAR, lookahead.CLEAR_AND_FITS))
+    assert reachable[size:].all() and (tiers[size:2 * size] == lookahead.CLEAR).all()
+    assert tiers[2 * size] == lookahead.CLEAR_AND_FITS
+
+
+def test_the_grasps_checked_for_an_air_turn_end_with_the_best_level_ones():
+    score = jnp.asarray(np.linspace(3.0, 0.0, 60), jnp.float32)
+    level = jnp.arange(60) % 10 == 9
+    plain = np.asarray(machine._candidate_pool(score, level, False))
+    np.testing.assert_array_equal(plain, np.arange(machine.PLAN_CANDIDATES * machine.PLAN_CHUNKS))
+    turn = np.asarray(machine._candidate_pool(score, level, True))
+    first = machine.PLAN_CANDIDATES * (machine.PLAN_CHUNKS - 1)
+    np.testing.assert_array_equal(turn[:first], np.arange(first))
+    np.testing.assert_array_equal(turn[first:first + 4], [19, 29, 39, 49])
+    np.testing.assert_array_equal(turn[first + 4:], [59, 16, 17, 18])
 
 
 def _servo_end(kinematics, q, position, quat, axis, object_top):
@@ -707,7 +746,7 @@ def test_the_lazy_outlook_picks_the_candidate_checking_every_one_picks():
     rng = np.random.default_rng(0)
     for _ in range(20):
         reachable = jnp.asarray(rng.random(16) < 0.6)
-        clear = jnp.asarray(rng.random(16) < 0.5)
+        tiers = jnp.asarray(rng.integers(lookahead.CLEAR_AND_FITS, lookahead.BLOCKED + 1, 16))
         for attempt, skip in itertools.product(range(3), (0, backtrack.TRY_SKIP)):
             state = machine.OracleState(**{f.name: jnp.zeros(()) for f in dataclasses.fields(machine.OracleState)})
             state = state.replace(attempt=jnp.asarray(attempt), skip=jnp.asarray(skip), needs_plan=jnp.asarray(True),
@@ -715,14 +754,16 @@ def test_the_lazy_outlook_picks_the_candidate_checking_every_one_picks():
                                   target_open=jnp.zeros(()), approach=jnp.zeros(3),
                                   failed=jnp.asarray(False), failed_skill=jnp.asarray(-1))
             positions = jnp.asarray(rng.random((16, 3)))
-            lazy = machine._first_preferred(reachable, lambda i: clear[i], attempt + skip + 1)
-            assert not (lazy & ~(reachable & clear)).any()
+            lazy = machine._first_tiers(reachable, lambda i: tiers[i], attempt + skip + 1)
+            checked = lazy != lookahead.BLOCKED
+            assert not (checked & ~reachable).any()
+            assert np.array_equal(lazy[checked], tiers[checked])
             args = (state, jnp.zeros(2), True, positions, jnp.zeros((16, 4)), jnp.zeros((16, 3)), jnp.zeros(16),
                     reachable)
-            every = machine._take_candidate(*args, reachable & clear)
+            every = machine._take_candidate(*args, tiers)
             assert np.array_equal(machine._take_candidate(*args, lazy).target_pos, every.target_pos)
-            # The (attempt + skip)-th reachable candidate in rank order, the clear ones first (the last if fewer).
-            order = sorted(np.flatnonzero(np.asarray(reachable)), key=lambda i: not clear[i])
+            # The (attempt + skip)-th reachable candidate in rank order, the best tiers first (the last if fewer).
+            order = sorted(np.flatnonzero(np.asarray(reachable)), key=lambda i: int(tiers[i]))
             if order:
                 expected = positions[order[min(attempt + skip, len(order) - 1)]]
                 np.testing.assert_array_equal(every.target_pos, expected)

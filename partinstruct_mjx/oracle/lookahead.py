@@ -3,8 +3,10 @@
 A grasp decides everything the hand does until the release: carries move the hand with the object, a rotation turns
 it. `outlook` follows the chain after the grasp with the object rigid in the hand (moves: the hand shifts by the
 unit distance; a put-down: back to the grasp height; a rotation: the turn rotation.py would choose), checking with the
-batched IK that each hand pose is reachable, each from the previous solution. The planner prefers grasps whose outlook
-is clear: a grasp across a bottle that leaves no wrist range for the turn the task needs fails only later.
+batched IK that each hand pose is reachable, each from the previous solution, and whether that turn fits the task
+(rotation.TurnPlan.fits). The planner prefers grasps whose outlook is clear and, of those, grasps whose turn fits: a
+grasp across a bottle that leaves no wrist range for the turn the task needs fails only later, and a box held from
+above and turned upside down in the air ends with the hand under it, too high for the AT goal after the turn.
 Pure JAX for one environment and one grasp.
 """
 
@@ -19,6 +21,8 @@ from partinstruct_mjx.oracle.kinds import MOVE, RELEASE, ROTATE
 from partinstruct_mjx.tasks.vocabulary import UNIT_DISTANCE
 
 REACH_CONFIG = jax_ik.IKConfig(iterations=30)
+CLEAR_AND_FITS, CLEAR, BLOCKED = 0, 1, 2
+"""`outlook`'s tiers, best first."""
 
 
 def reach_all(kinematics, q, positions, quat, config=REACH_CONFIG, counts=None):
@@ -39,7 +43,9 @@ def reach_all(kinematics, q, positions, quat, config=REACH_CONFIG, counts=None):
 
 def outlook(kinematics, q, hand_pos, hand_quat, chain: dict, start, object_pos, object_points, object_valid,
             part_vector) -> jnp.ndarray:
-    """True when every hand pose of the skills after skill `start` (a grasp) up to the next release is reachable.
+    """The grasp's rank tier: CLEAR_AND_FITS when every hand pose of the skills after skill `start` (a grasp) up to the
+    next release is reachable and the turn among them (if any) fits the task, CLEAR when they are only reachable,
+    BLOCKED otherwise.
 
     q: joint angles at the grasp; hand_pos/hand_quat: the grasp's TCP pose; chain: the episode's compiled chain
     (machine.OracleState fields kind, direction, put_down, part rows, on_table_turn, num_skills as (S, ...) arrays);
@@ -67,7 +73,7 @@ def outlook(kinematics, q, hand_pos, hand_quat, chain: dict, start, object_pos, 
     pos = path[-1]
     turn_row = index[first_turn]
     moved = pos - hand_pos
-    found, axis, angle, pivot, raise_by, q_turned = rotation.plan(
+    found, axis, angle, pivot, raise_by, q_turned, fits = rotation.plan(
         kinematics, q, pos, hand_quat, object_pos + moved, object_points + moved, object_valid,
         part_vector(chain["part"][turn_row]), chain["direction"][turn_row], chain["on_table_turn"][turn_row],
         (after & put_down).any())
@@ -76,4 +82,5 @@ def outlook(kinematics, q, hand_pos, hand_quat, chain: dict, start, object_pos, 
     # The moves after the turn (a put-down), from the pose the turn ends in.
     path = turned_pos + jnp.cumsum(jnp.where(after[:, None], shifts, 0.0), axis=0)
     ok_after, _ = reach_all(kinematics, q_turned, path, turned_quat, counts=after)
-    return ok & (~has_turn | (found & ok_after))
+    clear = ok & (~has_turn | (found & ok_after))
+    return jnp.where(clear, jnp.where(~has_turn | fits, CLEAR_AND_FITS, CLEAR), BLOCKED)

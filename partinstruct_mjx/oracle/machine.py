@@ -290,7 +290,7 @@ def _plan_turn(o: OracleState, data, geo: PartGeometry, kinematics, q):
     vector = jnp.where(flat, vector * jnp.array([1.0, 1.0, 0.0]), vector)
     following = jnp.clip(index + 1, 0, progress.MAX_SKILLS - 1)
     settle = (index + 1 < o.num_skills) & (o.kind[following] == MOVE) & o.put_down[following]
-    found, axis, angle, pivot, raise_by, _ = rotation.plan(
+    found, axis, angle, pivot, raise_by, *_ = rotation.plan(
         kinematics, q, o.cmd_pos, o.cmd_quat, data.object_pos, *_object_cloud(data, geo), vector, o.direction[index],
         flat, settle)
     take = need & found
@@ -323,7 +323,8 @@ def _plan_grasp(o: OracleState, data, geo: PartGeometry, kinematics, q):
                                           part_valid, sub, top_down_weight=jnp.where(
                                               table_turn, TABLE_TURN_TOP_DOWN_WEIGHT, candidates.TOP_DOWN_WEIGHT),
                                           lever_weight=jnp.where(air_turn, AIR_TURN_LEVER_WEIGHT, 0.0))
-    top_score, top = jax.lax.top_k(grasps["score"], PLAN_CANDIDATES * PLAN_CHUNKS)
+    top = _candidate_pool(grasps["score"], jnp.abs(grasps["approach"][:, 2]) < LEVEL_APPROACH, air_turn)
+    top_score = grasps["score"][top]
     approach, closing = grasps["approach"][top], grasps["closing"][top]
     # Both closing directions of each grasp (the hand turned half a turn about its axis), the one nearer the
     # current hand orientation first.
@@ -335,9 +336,6 @@ def _plan_grasp(o: OracleState, data, geo: PartGeometry, kinematics, q):
     approach = jnp.repeat(approach, 2, axis=0)
     positions = jnp.repeat(position, 2, axis=0)
     openings = jnp.repeat(grasps["opening"][top], 2)
-    reachable, joints = _reach_in_rank_order(kinematics, q, positions, quats, approach,
-                                             jnp.repeat(jnp.isfinite(top_score), 2), _top(object_points, object_valid),
-                                             o.attempt + o.skip + 1)
     # Grasps after which the arm can carry out the rest of the chain (lookahead.py) come first.
     chain = {name: getattr(o, name) for name in ("kind", "direction", "put_down", "part", "on_table_turn",
                                                  "num_skills")}
@@ -345,30 +343,34 @@ def _plan_grasp(o: OracleState, data, geo: PartGeometry, kinematics, q):
     def part_vector(row):
         return predicates.part_vector(data, geo, o.masks, jnp.maximum(row, 0))
 
-    def clear(i):
-        return lookahead.outlook(kinematics, joints[i], positions[i], quats[i], chain, index, data.object_pos,
+    def tier(i, joints):
+        return lookahead.outlook(kinematics, joints, positions[i], quats[i], chain, index, data.object_pos,
                                  object_points, object_valid, part_vector)
 
-    preferred = _first_preferred(reachable, clear, o.attempt + o.skip + 1)
-    return _take_candidate(o, key, o.kind[index] == GRASP, positions, quats, approach, openings, reachable, preferred)
+    reachable, tiers = _rank_in_chunks(kinematics, q, positions, quats, approach,
+                                       jnp.repeat(jnp.isfinite(top_score), 2), _top(object_points, object_valid),
+                                       o.attempt + o.skip + 1, tier)
+    return _take_candidate(o, key, o.kind[index] == GRASP, positions, quats, approach, openings, reachable, tiers)
 
 
-def _first_preferred(reachable, check, wanted):
-    """(N,) `reachable` & `check(i)` (a costly test) for the candidates in rank order until `wanted` of them pass
-    (later ones are left False): what `_take_candidate` needs to pick the same candidate as with every test run.
-    Stops after the last reachable candidate (`_reach_in_rank_order` leaves the chunks it did not check False)."""
+def _first_tiers(reachable, tier_of, wanted):
+    """(N,) outlook tiers (`tier_of(i)`, a costly test; lookahead.CLEAR_AND_FITS is best) of the reachable
+    candidates in rank order until `wanted` of them are in the best tier (the rest: lookahead.BLOCKED): what
+    `_take_candidate` needs to pick the same candidate as with every test run. Stops after the last reachable
+    candidate."""
     end = jnp.max(jnp.where(reachable, jnp.arange(reachable.shape[0]) + 1, 0))
 
     def body(carry):
-        i, passed, preferred = carry
-        ok = jax.lax.cond(reachable[i], check, lambda _: jnp.asarray(False), i)
-        return i + 1, passed + ok, preferred.at[i].set(ok)
+        i, best, tiers = carry
+        t = jax.lax.cond(reachable[i], tier_of, lambda _: jnp.asarray(lookahead.BLOCKED), i)
+        return i + 1, best + (t == lookahead.CLEAR_AND_FITS), tiers.at[i].set(t)
 
     def more(carry):
-        i, passed, _ = carry
-        return (i < end) & (passed < wanted)
+        i, best, _ = carry
+        return (i < end) & (best < wanted)
 
-    return jax.lax.while_loop(more, body, (0, 0, jnp.zeros_like(reachable)))[2]
+    start = (0, 0, jnp.full(reachable.shape, lookahead.BLOCKED))
+    return jax.lax.while_loop(more, body, start)[2]
 
 
 def _plan_touch(o: OracleState, data, geo: PartGeometry, kinematics, q):
@@ -386,7 +388,8 @@ def _plan_touch(o: OracleState, data, geo: PartGeometry, kinematics, q):
                                                                              _top(object_points, object_valid))
     reachable = jnp.isfinite(touch_score[order]) & reached
     closed = jnp.full(positions.shape[0], panda.FINGER_CLOSED)
-    return _take_candidate(o, key, o.kind[index] == TOUCH, positions, quats, axes, closed, reachable, reachable)
+    return _take_candidate(o, key, o.kind[index] == TOUCH, positions, quats, axes, closed, reachable,
+                           jnp.zeros(positions.shape[0], int))
 
 
 def touch_poses(points, axes):
@@ -406,12 +409,12 @@ def _object_cloud(data, geo: PartGeometry):
 
 
 def _take_candidate(o: OracleState, key, kind_matches, positions, quats, axes, openings, reachable,
-                    preferred) -> OracleState:
-    """Take the (`attempt` + `skip`)-th reachable candidate in rank order, the `preferred` ones (a clear outlook)
-    first (a retry skips the ones tried before; the last one when fewer are left) as the grasp or touch pose.
+                    tiers) -> OracleState:
+    """Take the (`attempt` + `skip`)-th reachable candidate in rank order, lower `tiers` (a better outlook) first
+    (a retry skips the ones tried before; the last one when fewer are left) as the grasp or touch pose.
     Nothing found: the candidates are a random sample (a thin part has few grasps), so draw again next step while
     attempts are left, then fail the skill."""
-    order = jnp.argsort(jnp.where(preferred, 0, 1) * positions.shape[0] + jnp.arange(positions.shape[0]))
+    order = jnp.argsort(tiers * positions.shape[0] + jnp.arange(positions.shape[0]))
     rank = jnp.cumsum(reachable[order]) - 1
     chosen = reachable[order] & (rank == jnp.minimum(o.attempt + o.skip, reachable.sum() - 1))
     found = chosen.any()
@@ -439,31 +442,52 @@ TABLE_TURN_TOP_DOWN_WEIGHT = 2.0
 PLAN_CANDIDATES = 8
 PLAN_CHUNKS = 3
 """Best-ranked grasps whose reach (with both closing directions) and outlook are checked with the IK, PLAN_CANDIDATES
-at a time in rank order, the next ones only while fewer are reachable than the attempt needs, up to PLAN_CHUNKS
-times: a laptop's front edge, to be held for a turn in the air (episode 4000216), had no reachable grasp among the
-first 8 and the grasp failed at once; among the first 24 it had."""
+at a time in rank order, the next ones only while fewer are in the outlook's best tier than the attempt needs, up to
+PLAN_CHUNKS times: a laptop's front edge, to be held for a turn in the air (episode 4000216), had no reachable grasp
+among the first 8 and the grasp failed at once; among the first 24 it had."""
+LEVEL_APPROACH = 0.5
+"""A grasp approaches level when its approach axis has a vertical component under this."""
+LEVEL_BOOST = 100.0
+"""Score added to level grasps to pick the last chunk of a chain with a turn in the air (more than any score)."""
 
 
-def _reach_in_rank_order(kinematics, q, positions, quats, axes, usable, object_top, wanted):
-    """(reachable (N,), joints (N, 7)) of the candidate poses, checked with `servo_reachable` a chunk of
-    2 * PLAN_CANDIDATES poses at a time in rank order until `wanted` usable ones are reachable (the rest: False)."""
+def _candidate_pool(score, level, air_turn):
+    """Indices of the grasps whose reach and outlook are checked, in rank order: the PLAN_CANDIDATES * (PLAN_CHUNKS
+    - 1) best, then, for a chain that turns the object in the air, the best `level` ones (a level approach lets the
+    wrist roll the object over in place; held from above, an object turned upside down ends above the hand, too high
+    for the AT goal after the turn), else the next best."""
+    first = jax.lax.top_k(score, PLAN_CANDIDATES * (PLAN_CHUNKS - 1))[1]
+    rest = score.at[first].set(-jnp.inf)
+    boost = jnp.where(air_turn & level & jnp.isfinite(rest), LEVEL_BOOST, 0.0)
+    return jnp.concatenate([first, jax.lax.top_k(rest + boost, PLAN_CANDIDATES)[1]])
+
+
+def _rank_in_chunks(kinematics, q, positions, quats, axes, usable, object_top, wanted, tier_of):
+    """(reachable (N,), tiers (N,)) of the candidate poses in rank order: checked with `servo_reachable` a chunk of
+    2 * PLAN_CANDIDATES poses at a time, and the reachable ones with `tier_of(i, joints at the pose)` (the outlook,
+    lazily: `_first_tiers`), until `wanted` are in the best tier (the chunks not checked: unreachable)."""
     size = 2 * PLAN_CANDIDATES
 
+    def best(tiers):
+        return (tiers == lookahead.CLEAR_AND_FITS).sum()
+
     def body(carry):
-        i, reachable, joints = carry
+        i, reachable, tiers = carry
         chunk = [jax.lax.dynamic_slice_in_dim(x, i * size, size) for x in (positions, quats, axes, usable)]
         reached, solved = jax.vmap(servo_reachable, in_axes=(None, None, 0, 0, 0, None))(kinematics, q, *chunk[:3],
                                                                                         object_top)
-        return (i + 1, jax.lax.dynamic_update_slice_in_dim(reachable, reached & chunk[3], i * size, 0),
-                jax.lax.dynamic_update_slice_in_dim(joints, solved, i * size, 0))
+        reached = reached & chunk[3]
+        chunk_tiers = _first_tiers(reached, lambda j: tier_of(i * size + j, solved[j]), wanted - best(tiers))
+        return (i + 1, jax.lax.dynamic_update_slice_in_dim(reachable, reached, i * size, 0),
+                jax.lax.dynamic_update_slice_in_dim(tiers, chunk_tiers, i * size, 0))
 
     def more(carry):
-        i, reachable, _ = carry
-        return (i * size < positions.shape[0]) & (reachable.sum() < wanted)
+        i, _, tiers = carry
+        return (i * size < positions.shape[0]) & (best(tiers) < wanted)
 
-    start = (0, jnp.zeros(positions.shape[0], bool), jnp.zeros((positions.shape[0], q.shape[0]), q.dtype))
-    _, reachable, joints = jax.lax.while_loop(more, body, start)
-    return reachable, joints
+    start = (0, jnp.zeros(positions.shape[0], bool), jnp.full(positions.shape[0], lookahead.BLOCKED))
+    _, reachable, tiers = jax.lax.while_loop(more, body, start)
+    return reachable, tiers
 
 
 def approach_reachable(kinematics, q, position, quat, axis):

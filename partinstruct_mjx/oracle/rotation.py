@@ -19,6 +19,7 @@ fingers' closing axis, would meet the table first), and the object's origin must
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -50,6 +51,9 @@ stops the hand before the object is down)."""
 MAX_RESTING_CHANGE = 0.06
 """Largest change (m) of the object origin's height above its lowest point that a turn before a put-down may make
 (the put-down's AT allows 0.08 from the origin before the lift)."""
+MAX_LIFT = 0.05
+"""Height (m) above where it was that an object turned in the air may end and still meet the AT goal after the turn
+(0.08 m), with room for the carries' tolerance."""
 UNSETTLED_COST = 5.0
 """Cost added to a turn after which the put-down cannot be made (more than the other costs of any turn that keeps
 the object within MAX_DISPLACEMENT)."""
@@ -140,9 +144,22 @@ def _reach_step(kinematics, joints, ok, pos, quat):
     return reached, ok & hit & (jnp.abs(reached - joints).max() < MAX_JOINT_JUMP)
 
 
+class TurnPlan(NamedTuple):
+    """The turn `plan` chose: found, axis (3,), angle, pivot (3,), the hand's raise, the joints (7,) at its end, and
+    whether it fits the task: the put-down after it (if any) can be made, and the object ends less than MAX_LIFT
+    above where it was (the AT goal after an air turn allows 0.08 m)."""
+    found: jnp.ndarray
+    axis: jnp.ndarray
+    angle: jnp.ndarray
+    pivot: jnp.ndarray
+    raise_by: jnp.ndarray
+    joints: jnp.ndarray
+    fits: jnp.ndarray
+
+
 def plan(kinematics, q, hand_pos, hand_quat, object_pos, object_points, object_valid, v, d, on_table,
-         settle=False):
-    """The turn to make: (found, axis (3,), angle, pivot (3,), raise, joints (7,) at its end) for one environment.
+         settle=False) -> TurnPlan:
+    """The turn to make (TurnPlan) for one environment.
 
     q: the arm's joint targets now; hand_pos/hand_quat: the commanded TCP pose the turn starts from; object_points
     (M, 3) world; v: the part's direction now (unnormalised is fine); d: the goal direction; on_table: yaw only;
@@ -152,11 +169,14 @@ def plan(kinematics, q, hand_pos, hand_quat, object_pos, object_points, object_v
     middle = jnp.where(on_table, pushing.footprint_centre(object_points, object_valid), object_pos)
     pivots = jnp.concatenate([jnp.tile(middle, (NUM_TWISTS, 1)), jnp.tile(hand_pos, (NUM_TWISTS, 1))])
 
-    def evaluate(axis, angle, pivot):
-        def lowest(fraction):
+    def evaluate(axis, angle, pivot, about_tcp):
+        def lowest_about(centre, fraction=1.0):
             turn = axis_angle_to_quat(axis, fraction * angle)
-            moved = pivot + quat_rotate(turn, object_points - pivot)
+            moved = centre + quat_rotate(turn, object_points - centre)
             return jnp.where(object_valid, moved[:, 2], jnp.inf).min()
+
+        def lowest(fraction):
+            return lowest_about(pivot, fraction)
 
         def lowest_hand(fraction):
             return hand_bottom(*turned_pose(pivot, axis, angle, fraction, hand_pos, hand_quat))
@@ -194,9 +214,14 @@ def plan(kinematics, q, hand_pos, hand_quat, object_pos, object_points, object_v
         displacement = jnp.linalg.norm(turned_origin - object_pos) + raise_by
         cost = (angle + 4.0 * displacement + 20.0 * jnp.maximum(displacement - MAX_DISPLACEMENT, 0.0)
                 + 3.0 * raise_by + jnp.where(unsettled, UNSETTLED_COST, 0.0))
-        return ok, cost, raise_by, joints
+        # How far above where it was the object ends: raised with the hand about its origin, or, turned about the
+        # TCP and carried back, as high as the turned hand and object must be with the origin back in its place.
+        back_raise = jnp.maximum(0.0, TABLE_HEIGHT + TABLE_CLEARANCE - jnp.minimum(
+            lowest_about(object_pos), hand_bottom(*turned_pose(object_pos, axis, angle, 1.0, hand_pos, hand_quat))))
+        lift = jnp.where(on_table, 0.0, jnp.where(about_tcp, back_raise, raise_by))
+        return ok, cost, raise_by, joints, ~unsettled & (lift < MAX_LIFT)
 
-    ok, cost, raise_by, joints = jax.vmap(evaluate)(axes, angles, pivots)
+    ok, cost, raise_by, joints, fits = jax.vmap(evaluate)(axes, angles, pivots, jnp.arange(2 * NUM_TWISTS) >= NUM_TWISTS)
     ok = ok & valid
     best = jnp.argmin(jnp.where(ok, cost, jnp.inf))
-    return ok.any(), axes[best], angles[best], pivots[best], raise_by[best], joints[best]
+    return TurnPlan(ok.any(), axes[best], angles[best], pivots[best], raise_by[best], joints[best], fits[best])
