@@ -655,6 +655,21 @@ def test_a_turn_fits_the_task_only_if_the_object_ends_near_where_it_was():
     assert bool(from_side.found) and bool(from_side.fits)
 
 
+def test_a_turn_before_a_put_down_fits_the_task_only_if_the_put_down_can_be_made():
+    # A 4 x 4 x 20 cm bar held from above, laid on its side in the air: its origin ends 2 cm over its lowest point
+    # instead of 10, more than the put-down's AT allows. Without a put-down after it the same turn fits.
+    centre = np.array([0.3, 0.0, TABLE_HEIGHT + 0.25])
+    xs, ys, zs = np.meshgrid(*[np.linspace(-s / 2, s / 2, 7) for s in (0.04, 0.04, 0.20)])
+    points = np.stack([xs.ravel(), ys.ravel(), zs.ravel()], axis=1) + centre
+
+    def turn(settle):
+        return _planned_turn(points, jnp.array(centre + [0.0, 0.0, 0.07], jnp.float32), jnp.array([1.0, 0.0, 0.0]),
+                             centre, [0.0, 0.0, 0.1], [-1.0, 0.0, 0.0], on_table=False, settle=settle)
+
+    assert bool(turn(False).found) and bool(turn(False).fits)
+    assert bool(turn(True).found) and not bool(turn(True).fits)
+
+
 def test_touching_again_after_a_push_aims_over_the_rear_faces_top():
     # A 6 x 4 x 3 cm block pushed along +x: the fingertip aims just above its rear face's top edge, in line with where
     # it is, not at the face (where the pads' edge would stop it over 1 cm from the part).

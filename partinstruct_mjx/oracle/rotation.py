@@ -13,7 +13,8 @@ where needed); the cheapest kept option (turn angle, object displacement, raise)
 turn, options after which it cannot be made rank last: the arm must reach the way down until the turned object's
 lowest point meets the table, the hand's lowest point must not be under the object's (the hand, wide along the
 fingers' closing axis, would meet the table first), and the object's origin must rest near the height it rested at
-(the put-down's AT measures it from there). Pure JAX for one environment.
+(the put-down's AT measures it from there). The plan also says whether the chosen turn fits the task (TurnPlan.fits),
+which the grasp look-ahead ranks grasps by. Pure JAX for one environment.
 """
 
 from __future__ import annotations
@@ -170,19 +171,20 @@ def plan(kinematics, q, hand_pos, hand_quat, object_pos, object_points, object_v
     pivots = jnp.concatenate([jnp.tile(middle, (NUM_TWISTS, 1)), jnp.tile(hand_pos, (NUM_TWISTS, 1))])
 
     def evaluate(axis, angle, pivot, about_tcp):
-        def lowest_about(centre, fraction=1.0):
+        def lowest(fraction, centre=pivot):
             turn = axis_angle_to_quat(axis, fraction * angle)
             moved = centre + quat_rotate(turn, object_points - centre)
             return jnp.where(object_valid, moved[:, 2], jnp.inf).min()
 
-        def lowest(fraction):
-            return lowest_about(pivot, fraction)
+        def clearance_raise(fractions, centre=pivot):
+            # How far the hand must rise to keep the object and the hand TABLE_CLEARANCE above the table at these
+            # fractions of the turn about `centre`.
+            low = jnp.stack([jnp.minimum(lowest(f, centre),
+                                         hand_bottom(*turned_pose(centre, axis, angle, f, hand_pos, hand_quat)))
+                             for f in fractions]).min()
+            return jnp.maximum(0.0, TABLE_HEIGHT + TABLE_CLEARANCE - low)
 
-        def lowest_hand(fraction):
-            return hand_bottom(*turned_pose(pivot, axis, angle, fraction, hand_pos, hand_quat))
-
-        raise_by = jnp.where(on_table, 0.0, jnp.maximum(0.0, TABLE_HEIGHT + TABLE_CLEARANCE - jnp.minimum(
-            jnp.minimum(lowest(0.5), lowest(1.0)), jnp.minimum(lowest_hand(0.5), lowest_hand(1.0)))))
+        raise_by = jnp.where(on_table, 0.0, clearance_raise((0.5, 1.0)))
 
         def follow(carry, fraction):
             pos, quat = turned_pose(pivot, axis, angle, fraction, hand_pos, hand_quat)
@@ -216,12 +218,11 @@ def plan(kinematics, q, hand_pos, hand_quat, object_pos, object_points, object_v
                 + 3.0 * raise_by + jnp.where(unsettled, UNSETTLED_COST, 0.0))
         # How far above where it was the object ends: raised with the hand about its origin, or, turned about the
         # TCP and carried back, as high as the turned hand and object must be with the origin back in its place.
-        back_raise = jnp.maximum(0.0, TABLE_HEIGHT + TABLE_CLEARANCE - jnp.minimum(
-            lowest_about(object_pos), hand_bottom(*turned_pose(object_pos, axis, angle, 1.0, hand_pos, hand_quat))))
-        lift = jnp.where(on_table, 0.0, jnp.where(about_tcp, back_raise, raise_by))
+        lift = jnp.where(on_table, 0.0, jnp.where(about_tcp, clearance_raise((1.0,), object_pos), raise_by))
         return ok, cost, raise_by, joints, ~unsettled & (lift < MAX_LIFT)
 
-    ok, cost, raise_by, joints, fits = jax.vmap(evaluate)(axes, angles, pivots, jnp.arange(2 * NUM_TWISTS) >= NUM_TWISTS)
+    about_tcp = jnp.arange(2 * NUM_TWISTS) >= NUM_TWISTS
+    ok, cost, raise_by, joints, fits = jax.vmap(evaluate)(axes, angles, pivots, about_tcp)
     ok = ok & valid
     best = jnp.argmin(jnp.where(ok, cost, jnp.inf))
     return TurnPlan(ok.any(), axes[best], angles[best], pivots[best], raise_by[best], joints[best], fits[best])
