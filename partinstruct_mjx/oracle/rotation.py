@@ -11,10 +11,10 @@ option is kept when the batched JAX IK reaches the TCP at every sixth of the way
 solution without a joint jumping, and the turned object and hand stay above the table (the hand is raised for them
 where needed); the cheapest kept option (turn angle, object displacement, raise) wins. Where a put-down follows the
 turn, options after which it cannot be made rank last: the arm must reach the way down until the turned object's
-lowest point meets the table, the hand's lowest point must not be under the object's (the hand, wide along the
-fingers' closing axis, would meet the table first), and the object's origin must rest near the height it rested at
-(the put-down's AT measures it from there). The plan also says whether the chosen turn fits the task (TurnPlan.fits),
-which the grasp look-ahead ranks grasps by. Pure JAX for one environment.
+lowest point meets the table or the hand (wide along the fingers' closing axis) meets it first, and the object's
+origin must then be near the height it rested at (the put-down's AT measures it from there). The plan also says
+whether the chosen turn fits the task (TurnPlan.fits), which the grasp look-ahead ranks grasps by. Pure JAX for one
+environment.
 """
 
 from __future__ import annotations
@@ -47,11 +47,12 @@ UP = np.array([0.0, 0.0, 1.0], np.float32)
 PUT_DOWN_FRACTIONS = np.array([0.5, 1.0], np.float32)
 """Points along a put-down after the turn where the IK must reach the TCP."""
 PUT_DOWN_SLACK = 0.01
-"""How far (m) the hand's lowest point may be below the turned object's when the put-down starts (the table then
-stops the hand before the object is down)."""
+"""How far (m) below the table top the hand's bounding spheres (HAND_SPHERES) may go in a put-down after the turn
+(they bound the hand loosely)."""
 MAX_RESTING_CHANGE = 0.06
-"""Largest change (m) of the object origin's height above its lowest point that a turn before a put-down may make
-(the put-down's AT allows 0.08 from the origin before the lift)."""
+"""Largest difference (m) between the height above the table at which a put-down after the turn leaves the object's
+origin (the object on the table, or held where the hand meets the table) and the height it rested at (the put-down's
+AT allows 0.08 from the origin before the lift)."""
 MAX_LIFT = 0.05
 """Height (m) above where it was that an object turned in the air may end and still meet the AT goal after the turn
 (0.08 m), with room for the carries' tolerance."""
@@ -195,21 +196,23 @@ def plan(kinematics, q, hand_pos, hand_quat, object_pos, object_points, object_v
         turned_origin = pivot + quat_rotate(axis_angle_to_quat(axis, angle), object_pos - pivot)
 
         def put_down_clear():
-            # The hand lowers the object until its lowest point meets the table: the arm must reach the way down and
-            # the hand must not reach the table first. AT after the put-down measures the object's origin from where
-            # it rested before: a turn that changes the origin's height above the object's lowest point by more than
-            # AT allows can never be put down there.
+            # The hand lowers the object until its lowest point meets the table or the hand meets it first, and the
+            # arm must reach the way down. AT after the put-down measures the object's origin from where it rested
+            # before the lift: the origin must end near the height above the table it rested at (a bucket turned
+            # upside down by its rim stays a few centimetres up, held where the hand meets the table: AT still holds).
             end_pos, end_quat = turned_pose(pivot, axis, angle, 1.0, hand_pos, hand_quat)
             end_pos = end_pos + raise_by * jnp.asarray(UP)
             drop = jnp.maximum(lowest(1.0) + raise_by - TABLE_HEIGHT, 0.0)
+            hand_room = hand_bottom(end_pos, end_quat) - TABLE_HEIGHT + PUT_DOWN_SLACK
+            descent = jnp.clip(jnp.minimum(drop, hand_room), 0.0, None)
 
             def lower(carry, fraction):
-                return _reach_step(kinematics, *carry, end_pos - fraction * drop * jnp.asarray(UP), end_quat), None
+                return _reach_step(kinematics, *carry, end_pos - fraction * descent * jnp.asarray(UP), end_quat), None
 
             (_, down_ok), _ = jax.lax.scan(lower, (joints, jnp.asarray(True)), jnp.asarray(PUT_DOWN_FRACTIONS))
-            resting_change = jnp.abs((turned_origin[2] - lowest(1.0)) - (object_pos[2] - lowest(0.0)))
-            return (down_ok & (hand_bottom(end_pos, end_quat) - TABLE_HEIGHT > drop - PUT_DOWN_SLACK)
-                    & (resting_change < MAX_RESTING_CHANGE))
+            rested_at = object_pos[2] - lowest(0.0)
+            ends_at = turned_origin[2] + raise_by - descent - TABLE_HEIGHT
+            return down_ok & (jnp.abs(ends_at - rested_at) < MAX_RESTING_CHANGE)
 
         # Only a turn with a put-down after it pays for the check (a real branch where `settle` is not batched).
         unsettled = jax.lax.cond(settle, lambda: ~put_down_clear(), lambda: jnp.asarray(False))
