@@ -619,7 +619,8 @@ def test_a_turn_before_a_put_down_leaves_the_object_where_the_put_down_can_meet_
     # An 8 x 16 x 6 cm box held from above (pads closing along x), 20 cm over the table, its top turned to face -x.
     # The shortest turn (about y) stands the closing axis upright and the hand, 23 cm wide along it, reaches 7 cm under
     # the box: lowered until the hand meets the table, the box's origin stays over 7 cm above the 3 cm it rested at,
-    # more than the put-down's AT allows. Where a put-down follows, the plan turns so that it ends near that height.
+    # more than the put-down's AT allows. Where a put-down follows, the plan turns so that it ends near that height,
+    # with the box on the table (the put-down skill's ON) rather than held above it.
     centre = np.array([0.15, 0.0, TABLE_HEIGHT + 0.2])
     xs, ys, zs = np.meshgrid(*[np.linspace(-s / 2, s / 2, 7) for s in (0.08, 0.16, 0.06)])
     points = np.stack([xs.ravel(), ys.ravel(), zs.ravel()], axis=1) + centre
@@ -627,9 +628,9 @@ def test_a_turn_before_a_put_down_leaves_the_object_where_the_put_down_can_meet_
     closing = jnp.array([1.0, 0.0, 0.0])
     hand_quat = candidates.tcp_quat(jnp.array([0.0, 0.0, -1.0]), closing)
 
-    def resting_error(settle):
+    def put_down(settle):
         # The origin's height over the table once the put-down lowers the box onto the table or the hand onto it,
-        # against the 3 cm it rested at.
+        # against the 3 cm it rested at; and whether the box reaches the table first.
         found, axis, angle, pivot, raise_by, *_ = _planned_turn(points, hand_pos, closing, centre, [0.0, 0.0, 0.03],
                                                                 [-1.0, 0.0, 0.0], on_table=False, settle=settle)
         assert bool(found)
@@ -637,11 +638,13 @@ def test_a_turn_before_a_put_down_leaves_the_object_where_the_put_down_can_meet_
         turn = axis_angle_to_quat(axis, angle)
         lowest = (pivot + quat_rotate(turn, jnp.asarray(points, jnp.float32) - pivot))[:, 2].min()
         origin = (pivot + quat_rotate(turn, jnp.asarray(centre, jnp.float32) - pivot))[2]
-        descent = min(float(lowest), float(rotation.hand_bottom(pos, quat)) + rotation.PUT_DOWN_SLACK) - TABLE_HEIGHT
-        return abs(float(origin) - descent - TABLE_HEIGHT - 0.03)
+        hand = float(rotation.hand_bottom(pos, quat)) + rotation.PUT_DOWN_SLACK
+        descent = min(float(lowest), hand) - TABLE_HEIGHT
+        return abs(float(origin) - descent - TABLE_HEIGHT - 0.03), hand >= float(lowest)
 
-    assert resting_error(False) > rotation.MAX_RESTING_CHANGE
-    assert resting_error(True) < rotation.MAX_RESTING_CHANGE
+    assert put_down(False)[0] > rotation.MAX_RESTING_CHANGE
+    error, on_table = put_down(True)
+    assert error < rotation.MAX_RESTING_CHANGE and on_table
 
 
 def test_a_turn_fits_the_task_only_if_the_object_ends_near_where_it_was():
@@ -658,6 +661,18 @@ def test_a_turn_fits_the_task_only_if_the_object_ends_near_where_it_was():
                               [0.0, 0.0, 0.05], [0.0, 0.0, -1.0], on_table=False, approach=(1.0, 0.0, 0.0))
     assert bool(from_above.found) and not bool(from_above.fits)
     assert bool(from_side.found) and bool(from_side.fits)
+
+
+def test_a_turn_before_a_put_down_may_leave_the_object_held_where_its_goal_holds():
+    # A 4 x 4 x 20 cm bar held from above 7 cm over its middle, laid on its side in the air. Lying on the table its
+    # origin would be 2 cm up instead of the 10 it rested at; but the hand, its closing axis turned upright, meets
+    # the table with the origin about 10 cm up, where the put-down's AT holds: the turn fits the task.
+    centre = np.array([0.3, 0.0, TABLE_HEIGHT + 0.25])
+    xs, ys, zs = np.meshgrid(*[np.linspace(-s / 2, s / 2, 7) for s in (0.04, 0.04, 0.20)])
+    points = np.stack([xs.ravel(), ys.ravel(), zs.ravel()], axis=1) + centre
+    plan = _planned_turn(points, jnp.array(centre + [0.0, 0.0, 0.07], jnp.float32), jnp.array([1.0, 0.0, 0.0]),
+                         centre, [0.0, 0.0, 0.1], [-1.0, 0.0, 0.0], on_table=False, settle=True)
+    assert bool(plan.found) and bool(plan.fits)
 
 
 def test_a_turn_before_a_put_down_fits_the_task_only_if_the_put_down_can_be_made():

@@ -12,7 +12,8 @@ solution without a joint jumping, and the turned object and hand stay above the 
 where needed); the cheapest kept option (turn angle, object displacement, raise) wins. Where a put-down follows the
 turn, options after which it cannot be made rank last: the arm must reach the way down until the turned object's
 lowest point meets the table or the hand (wide along the fingers' closing axis) meets it first, and the object's
-origin must then be near the height it rested at (the put-down's AT measures it from there). The plan also says
+origin must then be near the height it rested at (the put-down's AT measures it from there); of the others, those
+that leave the object on the table rank first. The plan also says
 whether the chosen turn fits the task (TurnPlan.fits), which the grasp look-ahead ranks grasps by. Pure JAX for one
 environment.
 """
@@ -57,8 +58,10 @@ MAX_LIFT = 0.05
 """Height (m) above where it was that an object turned in the air may end and still meet the AT goal after the turn
 (0.08 m), with room for the carries' tolerance."""
 UNSETTLED_COST = 5.0
-"""Cost added to a turn after which the put-down cannot be made (more than the other costs of any turn that keeps
-the object within MAX_DISPLACEMENT)."""
+"""Cost added to a turn after which the put-down cannot be made, and half of it to one after which the put-down ends
+with the hand on the table, the object held above it (more than the other costs of any turn that keeps the object
+within MAX_DISPLACEMENT, so a put-down onto the table comes first: in skill mode the put-down counts only with the
+object on the table)."""
 HAND_SPHERES = np.array([[0.0, 0.085, -0.02, 0.028], [0.0, -0.085, -0.02, 0.028], [0.0, 0.0, -0.082, 0.045],
                          [0.0, 0.0, -0.192, 0.045]], np.float32)
 """Spheres (centre in the TCP frame, radius) bounding the hand's palm capsule and the last link's, which a turn in
@@ -195,11 +198,12 @@ def plan(kinematics, q, hand_pos, hand_quat, object_pos, object_points, object_v
         (joints, ok), _ = jax.lax.scan(follow, (q, jnp.asarray(True)), jnp.asarray(FRACTIONS, jnp.float32))
         turned_origin = pivot + quat_rotate(axis_angle_to_quat(axis, angle), object_pos - pivot)
 
-        def put_down_clear():
+        def put_down_cost():
             # The hand lowers the object until its lowest point meets the table or the hand meets it first, and the
             # arm must reach the way down. AT after the put-down measures the object's origin from where it rested
             # before the lift: the origin must end near the height above the table it rested at (a bucket turned
-            # upside down by its rim stays a few centimetres up, held where the hand meets the table: AT still holds).
+            # upside down by its rim stays a few centimetres up, held where the hand meets the table: the task's AT
+            # still holds, the put-down skill's ON does not).
             end_pos, end_quat = turned_pose(pivot, axis, angle, 1.0, hand_pos, hand_quat)
             end_pos = end_pos + raise_by * jnp.asarray(UP)
             drop = jnp.maximum(lowest(1.0) + raise_by - TABLE_HEIGHT, 0.0)
@@ -212,13 +216,15 @@ def plan(kinematics, q, hand_pos, hand_quat, object_pos, object_points, object_v
             (_, down_ok), _ = jax.lax.scan(lower, (joints, jnp.asarray(True)), jnp.asarray(PUT_DOWN_FRACTIONS))
             rested_at = object_pos[2] - lowest(0.0)
             ends_at = turned_origin[2] + raise_by - descent - TABLE_HEIGHT
-            return down_ok & (jnp.abs(ends_at - rested_at) < MAX_RESTING_CHANGE)
+            settled = down_ok & (jnp.abs(ends_at - rested_at) < MAX_RESTING_CHANGE)
+            return jnp.where(settled, jnp.where(descent < drop, 0.5, 0.0), 1.0) * UNSETTLED_COST
 
         # Only a turn with a put-down after it pays for the check (a real branch where `settle` is not batched).
-        unsettled = jax.lax.cond(settle, lambda: ~put_down_clear(), lambda: jnp.asarray(False))
+        put_down = jax.lax.cond(settle, put_down_cost, lambda: jnp.asarray(0.0))
+        unsettled = put_down >= UNSETTLED_COST
         displacement = jnp.linalg.norm(turned_origin - object_pos) + raise_by
         cost = (angle + 4.0 * displacement + 20.0 * jnp.maximum(displacement - MAX_DISPLACEMENT, 0.0)
-                + 3.0 * raise_by + jnp.where(unsettled, UNSETTLED_COST, 0.0))
+                + 3.0 * raise_by + put_down)
         # How far above where it was the object ends: raised with the hand about its origin, or, turned about the
         # TCP and carried back, as high as the turned hand and object must be with the origin back in its place.
         lift = jnp.where(on_table, 0.0, jnp.where(about_tcp, clearance_raise((1.0,), object_pos), raise_by))
