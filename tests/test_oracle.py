@@ -615,35 +615,46 @@ def test_a_turn_in_the_air_keeps_the_hand_above_the_table():
         assert float(rotation.hand_bottom(pos + raise_by * jnp.array([0.0, 0.0, 1.0]), quat)) > TABLE_HEIGHT + 0.015
 
 
-def test_a_turn_before_a_put_down_leaves_the_object_where_the_put_down_can_meet_its_goal():
-    # An 8 x 16 x 6 cm box held from above (pads closing along x), 20 cm over the table, its top turned to face -x.
-    # The shortest turn (about y) stands the closing axis upright and the hand, 23 cm wide along it, reaches 7 cm under
-    # the box: lowered until the hand meets the table, the box's origin stays over 7 cm above the 3 cm it rested at,
-    # more than the put-down's AT allows. Where a put-down follows, the plan turns so that it ends near that height,
-    # with the box on the table (the put-down skill's ON) rather than held above it.
+def _box_put_down(height, settle):
+    """An 8 x 16 cm box `height` tall held from above (pads closing along x, the TCP level with its top), 20 cm over
+    the table, its top turned to face -x: the height over the table at which the put-down after the planned turn
+    leaves the box's origin, lowering it onto the table or the hand onto it, against the height it rested at; and
+    whether the box reaches the table first."""
     centre = np.array([0.15, 0.0, TABLE_HEIGHT + 0.2])
-    xs, ys, zs = np.meshgrid(*[np.linspace(-s / 2, s / 2, 7) for s in (0.08, 0.16, 0.06)])
+    xs, ys, zs = np.meshgrid(*[np.linspace(-s / 2, s / 2, 7) for s in (0.08, 0.16, height)])
     points = np.stack([xs.ravel(), ys.ravel(), zs.ravel()], axis=1) + centre
-    hand_pos = jnp.array(centre + [0.0, 0.0, 0.03], jnp.float32)
+    hand_pos = jnp.array(centre + [0.0, 0.0, height / 2], jnp.float32)
     closing = jnp.array([1.0, 0.0, 0.0])
     hand_quat = candidates.tcp_quat(jnp.array([0.0, 0.0, -1.0]), closing)
+    found, axis, angle, pivot, raise_by, *_ = _planned_turn(points, hand_pos, closing, centre, [0.0, 0.0, 0.03],
+                                                            [-1.0, 0.0, 0.0], on_table=False, settle=settle)
+    assert bool(found)
+    pos, quat = rotation.turned_pose(pivot, axis, angle, 1.0, hand_pos, hand_quat)
+    turn = axis_angle_to_quat(axis, angle)
+    lowest = (pivot + quat_rotate(turn, jnp.asarray(points, jnp.float32) - pivot))[:, 2].min()
+    origin = (pivot + quat_rotate(turn, jnp.asarray(centre, jnp.float32) - pivot))[2]
+    hand = float(rotation.hand_bottom(pos, quat)) + rotation.PUT_DOWN_SLACK
+    descent = min(float(lowest), hand) - TABLE_HEIGHT
+    return abs(float(origin) - descent - TABLE_HEIGHT - height / 2), hand >= float(lowest)
 
-    def put_down(settle):
-        # The origin's height over the table once the put-down lowers the box onto the table or the hand onto it,
-        # against the 3 cm it rested at; and whether the box reaches the table first.
-        found, axis, angle, pivot, raise_by, *_ = _planned_turn(points, hand_pos, closing, centre, [0.0, 0.0, 0.03],
-                                                                [-1.0, 0.0, 0.0], on_table=False, settle=settle)
-        assert bool(found)
-        pos, quat = rotation.turned_pose(pivot, axis, angle, 1.0, hand_pos, hand_quat)
-        turn = axis_angle_to_quat(axis, angle)
-        lowest = (pivot + quat_rotate(turn, jnp.asarray(points, jnp.float32) - pivot))[:, 2].min()
-        origin = (pivot + quat_rotate(turn, jnp.asarray(centre, jnp.float32) - pivot))[2]
-        hand = float(rotation.hand_bottom(pos, quat)) + rotation.PUT_DOWN_SLACK
-        descent = min(float(lowest), hand) - TABLE_HEIGHT
-        return abs(float(origin) - descent - TABLE_HEIGHT - 0.03), hand >= float(lowest)
 
-    assert put_down(False)[0] > rotation.MAX_RESTING_CHANGE
-    error, on_table = put_down(True)
+def test_a_turn_before_a_put_down_leaves_the_object_where_the_put_down_can_meet_its_goal():
+    # A 6 cm tall box: the shortest turn (about y) stands the closing axis upright and the hand, 23 cm wide along it,
+    # reaches 7 cm under the box: lowered until the hand meets the table, the box's origin stays over 7 cm above the
+    # 3 cm it rested at, more than the put-down's AT allows. Where a put-down follows, the plan turns so that it ends
+    # near that height, with the box on the table (the put-down skill's ON) rather than held above it.
+    assert _box_put_down(0.06, settle=False)[0] > rotation.MAX_RESTING_CHANGE
+    error, on_table = _box_put_down(0.06, settle=True)
+    assert error < rotation.MAX_RESTING_CHANGE and on_table
+
+
+def test_a_turn_before_a_put_down_sets_the_object_on_the_table_rather_than_holding_it_above():
+    # A 10 cm tall box: after the shortest turn the hand meets the table with the origin 5 cm above the 5 cm it
+    # rested at, which the put-down's AT allows, but the put-down skill's ON would never hold (skill mode). Another
+    # turn sets the box on the table: where a put-down follows, the plan takes that one (HELD_COST).
+    error, on_table = _box_put_down(0.10, settle=False)
+    assert error < rotation.MAX_RESTING_CHANGE and not on_table
+    error, on_table = _box_put_down(0.10, settle=True)
     assert error < rotation.MAX_RESTING_CHANGE and on_table
 
 

@@ -13,9 +13,8 @@ where needed); the cheapest kept option (turn angle, object displacement, raise)
 turn, options after which it cannot be made rank last: the arm must reach the way down until the turned object's
 lowest point meets the table or the hand (wide along the fingers' closing axis) meets it first, and the object's
 origin must then be near the height it rested at (the put-down's AT measures it from there); of the others, those
-that leave the object on the table rank first. The plan also says
-whether the chosen turn fits the task (TurnPlan.fits), which the grasp look-ahead ranks grasps by. Pure JAX for one
-environment.
+that leave the object on the table rank first. The plan also says whether the chosen turn fits the task
+(TurnPlan.fits), which the grasp look-ahead ranks grasps by. Pure JAX for one environment.
 """
 
 from __future__ import annotations
@@ -58,10 +57,11 @@ MAX_LIFT = 0.05
 """Height (m) above where it was that an object turned in the air may end and still meet the AT goal after the turn
 (0.08 m), with room for the carries' tolerance."""
 UNSETTLED_COST = 5.0
-"""Cost added to a turn after which the put-down cannot be made, and half of it to one after which the put-down ends
-with the hand on the table, the object held above it (more than the other costs of any turn that keeps the object
-within MAX_DISPLACEMENT, so a put-down onto the table comes first: in skill mode the put-down counts only with the
-object on the table)."""
+"""Cost added to a turn after which the put-down cannot be made (more than the other costs of any turn that keeps
+the object within MAX_DISPLACEMENT)."""
+HELD_COST = 0.5 * UNSETTLED_COST
+"""Cost added to a turn after which the put-down ends with the hand on the table and the object held above it, so
+that a put-down onto the table comes first (in skill mode the put-down counts only with the object on the table)."""
 HAND_SPHERES = np.array([[0.0, 0.085, -0.02, 0.028], [0.0, -0.085, -0.02, 0.028], [0.0, 0.0, -0.082, 0.045],
                          [0.0, 0.0, -0.192, 0.045]], np.float32)
 """Spheres (centre in the TCP frame, radius) bounding the hand's palm capsule and the last link's, which a turn in
@@ -198,7 +198,7 @@ def plan(kinematics, q, hand_pos, hand_quat, object_pos, object_points, object_v
         (joints, ok), _ = jax.lax.scan(follow, (q, jnp.asarray(True)), jnp.asarray(FRACTIONS, jnp.float32))
         turned_origin = pivot + quat_rotate(axis_angle_to_quat(axis, angle), object_pos - pivot)
 
-        def put_down_cost():
+        def put_down():
             # The hand lowers the object until its lowest point meets the table or the hand meets it first, and the
             # arm must reach the way down. AT after the put-down measures the object's origin from where it rested
             # before the lift: the origin must end near the height above the table it rested at (a bucket turned
@@ -216,19 +216,18 @@ def plan(kinematics, q, hand_pos, hand_quat, object_pos, object_points, object_v
             (_, down_ok), _ = jax.lax.scan(lower, (joints, jnp.asarray(True)), jnp.asarray(PUT_DOWN_FRACTIONS))
             rested_at = object_pos[2] - lowest(0.0)
             ends_at = turned_origin[2] + raise_by - descent - TABLE_HEIGHT
-            settled = down_ok & (jnp.abs(ends_at - rested_at) < MAX_RESTING_CHANGE)
-            return jnp.where(settled, jnp.where(descent < drop, 0.5, 0.0), 1.0) * UNSETTLED_COST
+            # Whether it can be made, and whether it ends with the object held above the table.
+            return down_ok & (jnp.abs(ends_at - rested_at) < MAX_RESTING_CHANGE), descent < drop
 
         # Only a turn with a put-down after it pays for the check (a real branch where `settle` is not batched).
-        put_down = jax.lax.cond(settle, put_down_cost, lambda: jnp.asarray(0.0))
-        unsettled = put_down >= UNSETTLED_COST
+        settled, held = jax.lax.cond(settle, put_down, lambda: (jnp.asarray(True), jnp.asarray(False)))
         displacement = jnp.linalg.norm(turned_origin - object_pos) + raise_by
         cost = (angle + 4.0 * displacement + 20.0 * jnp.maximum(displacement - MAX_DISPLACEMENT, 0.0)
-                + 3.0 * raise_by + put_down)
+                + 3.0 * raise_by + jnp.where(settled, jnp.where(held, HELD_COST, 0.0), UNSETTLED_COST))
         # How far above where it was the object ends: raised with the hand about its origin, or, turned about the
         # TCP and carried back, as high as the turned hand and object must be with the origin back in its place.
         lift = jnp.where(on_table, 0.0, jnp.where(about_tcp, clearance_raise((1.0,), object_pos), raise_by))
-        return ok, cost, raise_by, joints, ~unsettled & (lift < MAX_LIFT)
+        return ok, cost, raise_by, joints, settled & (lift < MAX_LIFT)
 
     about_tcp = jnp.arange(2 * NUM_TWISTS) >= NUM_TWISTS
     ok, cost, raise_by, joints, fits = jax.vmap(evaluate)(axes, angles, pivots, about_tcp)
