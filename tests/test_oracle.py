@@ -15,6 +15,7 @@ from partinstruct_mjx.control import jax_ik
 from partinstruct_mjx.control.rotations import axis_angle_to_quat, quat_rotate
 from partinstruct_mjx.env import EnvConfig, PartInstructEnv, hold_action
 from partinstruct_mjx.oracle import backtrack, candidates, lookahead, machine, pushing, rollout, rotation
+from partinstruct_mjx.oracle.kinds import GRASP, MOVE, RELEASE, ROTATE, TOUCH
 from partinstruct_mjx.oracle.rollout import OraclePolicy, run_oracle
 from partinstruct_mjx.paths import assets_root
 from partinstruct_mjx.sim import panda
@@ -120,6 +121,19 @@ def test_a_keyboard_under_an_open_lid_is_touched_from_above(episodes):
     assert np.linalg.norm(keyboard - point, axis=1).min() < 1e-6
     above = points[(points[:, 2] > point[2] + 0.01) & (np.linalg.norm(points[:, :2] - point[:2], axis=1) < 0.02)]
     assert len(above) == 0
+
+
+def test_a_chains_first_move_in_task_mode_starts_from_where_the_task_started():
+    # A type-16 chain: touch, push, release, grasp, lift, turn, put down. The touch may have pushed the object aside.
+    kinds = jnp.array([TOUCH, MOVE, RELEASE, GRASP, MOVE, ROTATE, MOVE])
+    now, start = jnp.array([0.05, -0.03, 0.1]), jnp.array([0.0, 0.0, 0.1])
+    # The push is measured from the task's start, as the task's AT goal is; in skill mode the env judges every skill
+    # from where it started, and the machine follows it.
+    assert np.allclose(machine.starting_p0(kinds, 1, now, start, follow_env=False), start)
+    assert np.allclose(machine.starting_p0(kinds, 1, now, start, follow_env=True), now)
+    # Other skills, and moves after a move or a turn, start from where the object is.
+    for index in (2, 3, 4, 6):
+        assert np.allclose(machine.starting_p0(kinds, index, now, start, follow_env=False), now)
 
 
 def test_compile_chains_marks_pushes_and_table_turns(episodes):

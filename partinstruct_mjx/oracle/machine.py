@@ -536,7 +536,7 @@ def act(oracle: OracleState, data, task: progress.TaskState, geometry: PartGeome
     its `for_jit()`.
     """
     data = unpacked(data)
-    follow = (task.skill_index, task.skill_p0, task.masks)
+    follow = (task.skill_index, task.skill_p0, task.masks, task.task_p0)
     before = oracle.skill
     rows = progress.rows_at(task.skills, jnp.clip(oracle.skill, 0, progress.MAX_SKILLS - 1))
     # The spatial parts `_act_one` judges the skill with (the env's while it follows the env on the same skill).
@@ -659,9 +659,21 @@ def push_counted(effects, touching_part, stage, pushed_enough):
     return effects & touching_part & ((stage >= 4) | ((stage == 3) & pushed_enough))
 
 
+def starting_p0(kinds, index, object_pos, task_p0, follow_env: bool):
+    """The p0 (3,) the skill at `index` of the chain `kinds` (S,) starts with: where the object is now, except in task
+    mode for the chain's first move after grasps and touches only, which is measured from where the object was when
+    the task started (`task_p0`), as the task's AT goal is: a grasp or touch that missed may have pushed it aside
+    (laptop_001, 880 draw, episode 367: 6 cm, and the push that followed went 12 cm from there)."""
+    if follow_env:
+        return object_pos
+    earlier = jnp.arange(kinds.shape[0]) < index
+    from_start = (kinds[index] == MOVE) & ~(earlier & (kinds > TOUCH)).any()
+    return jnp.where(from_start, task_p0, object_pos)
+
+
 def _act_one(o: OracleState, data, geo: PartGeometry, rows, facts, env, phase_goals, follow_env: bool):
     """One environment's step. phase_goals: the kinds of the goals of the env's current task phase."""
-    env_skill, env_p0, env_masks = env
+    env_skill, env_p0, env_masks, task_p0 = env
     keep_on = (phase_goals == progress.GOAL_KINDS.index("ON")).any()
     # In task mode a push touches its part again (stages 4-5) only for a task goal that names it still to come.
     retouch = follow_env | (phase_goals == progress.GOAL_KINDS.index("TOUCHING")).any()
@@ -873,6 +885,7 @@ def _act_one(o: OracleState, data, geo: PartGeometry, rows, facts, env, phase_go
     new_kind = o.kind[new_index]
     starts_plan = finished & (skill != DONE) & ((new_kind <= TOUCH) | (new_kind == ROTATE)
                                                 | ((new_kind == MOVE) & o.touching[new_index]))
+    p0 = jnp.where(finished, starting_p0(o.kind, new_index, data.object_pos, task_p0, follow_env), o.p0)
     keep = ~running
     return o.replace(
         skill=skill,
@@ -882,7 +895,7 @@ def _act_one(o: OracleState, data, geo: PartGeometry, rows, facts, env, phase_go
         attempt=jnp.where(finished, 0, attempt), skip=jnp.where(finished, 0, o.skip), lost=jnp.where(finished, 0, lost),
         needs_plan=running & (o.needs_plan | starts_plan | (replan & ~out_of_attempts)),
         failed=o.failed | fail, failed_skill=jnp.where(fail, o.skill, o.failed_skill),
-        p0=jnp.where(finished, data.object_pos, o.p0),
+        p0=p0,
         cmd_pos=jnp.where(keep, o.cmd_pos, pos), cmd_quat=jnp.where(keep, o.cmd_quat, quat),
         finger=jnp.where(keep, o.finger, finger), grip_width=data.finger_qpos[0].astype(jnp.float32),
         target_pos=target_pos, anchor_pos=jnp.where(keep, o.anchor_pos, anchor_pos),
