@@ -332,6 +332,24 @@ def test_oracle_follows_a_skill_mode_env_through_chained_moves(episodes):
     np.testing.assert_allclose(oracle_p0, np.asarray(state.task.skill_p0[0]), atol=1e-6)
 
 
+def test_the_first_move_of_a_task_mode_chain_starts_from_the_tasks_p0(episodes):
+    """Grasp, then lift, in a task-mode env whose task started 2 cm from where the bottle stands: the lift's p0 is the
+    task's (where the task measures AT from), not the bottle's position when the grasp ended."""
+    episode = next(e for e in episodes if e.obj_id == "bottle_005" and e.task_type == 7)
+    with _env(episode) as env:
+        state, policy = _started(env, [episode])
+        shifted = np.asarray(state.task.task_p0) + np.array([0.02, 0.0, 0.0], np.float32)
+        state = state.replace(task=state.task.replace(task_p0=jnp.asarray(shifted)))
+        for _ in range(160):
+            state = env.step(state, policy.act(env, state))
+            if int(policy.state.skill[0]) == 1:
+                break
+        assert int(policy.state.skill[0]) == 1
+        np.testing.assert_allclose(np.asarray(state.task.task_p0[0]), shifted[0], atol=1e-6)
+        np.testing.assert_allclose(np.asarray(policy.state.p0[0]), shifted[0], atol=1e-6)
+        assert np.linalg.norm(np.asarray(state.data.object_pos[0]) - shifted[0]) > 0.015
+
+
 @pytest.mark.slow
 def test_a_scene_planned_alone_gets_the_plan_it_gets_in_a_batch(episodes):
     """A batch of one is planned without vmap (faster on a CPU); its grasp plan is the batched plan of that scene."""
