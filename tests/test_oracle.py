@@ -841,10 +841,12 @@ def test_the_lazy_outlook_picks_the_candidate_checking_every_one_picks():
                     reachable)
             every = machine._take_candidate(*args, tiers)
             assert np.array_equal(machine._take_candidate(*args, lazy).target_pos, every.target_pos)
-            # The (attempt + skip)-th reachable candidate in rank order, the best tiers first (the last if fewer).
+            # The (attempt + skip)-th reachable candidate in rank order, the best tiers first (the last if fewer),
+            # the skip passing over no more than the best tier's candidates but its last.
             order = sorted(np.flatnonzero(np.asarray(reachable)), key=lambda i: int(tiers[i]))
             if order:
-                expected = positions[order[min(attempt + skip, len(order) - 1)]]
+                in_best = sum(int(tiers[i]) == int(tiers[order[0]]) for i in order)
+                expected = positions[order[min(attempt + min(skip, in_best - 1), len(order) - 1)]]
                 np.testing.assert_array_equal(every.target_pos, expected)
 
 

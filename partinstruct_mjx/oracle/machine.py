@@ -411,12 +411,16 @@ def _object_cloud(data, geo: PartGeometry):
 def _take_candidate(o: OracleState, key, kind_matches, positions, quats, axes, openings, reachable,
                     tiers) -> OracleState:
     """Take the (`attempt` + `skip`)-th reachable candidate in rank order, lower `tiers` (a better outlook) first
-    (a retry skips the ones tried before; the last one when fewer are left) as the grasp or touch pose.
+    (a retry skips the ones tried before, but not past the last of the best tier: passing over a fresh sample's
+    few grasps the look-ahead found clear took one it had found blocked; the last one when fewer are left) as the
+    grasp or touch pose.
     Nothing found: the candidates are a random sample (a thin part has few grasps), so draw again next step while
     attempts are left, then fail the skill."""
     order = jnp.argsort(tiers * positions.shape[0] + jnp.arange(positions.shape[0]))
     rank = jnp.cumsum(reachable[order]) - 1
-    chosen = reachable[order] & (rank == jnp.minimum(o.attempt + o.skip, reachable.sum() - 1))
+    best_tier = jnp.where(reachable, tiers, lookahead.BLOCKED + 1).min()
+    skip = jnp.minimum(o.skip, jnp.maximum((reachable & (tiers == best_tier)).sum() - 1, 0))
+    chosen = reachable[order] & (rank == jnp.minimum(o.attempt + skip, reachable.sum() - 1))
     found = chosen.any()
     pick = order[jnp.argmax(chosen)]
     need = o.needs_plan & kind_matches
