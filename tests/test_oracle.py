@@ -350,6 +350,25 @@ def test_the_first_move_of_a_task_mode_chain_starts_from_the_tasks_p0(episodes):
         assert np.linalg.norm(np.asarray(state.data.object_pos[0]) - shifted[0]) > 0.015
 
 
+def test_an_object_going_along_a_push_counts_as_touched(episodes):
+    """A push whose fingers touch nothing while the object goes along it (the hand itself pushes it: a laptop's lid
+    leaning over the fingers) goes on pushing; with the object standing still the same step counts towards a slip."""
+    episode = next(e for e in episodes if e.task_type == 4)
+    with _env(episode) as env:
+        state, policy = _started(env, [episode])
+        one = np.ones(1, np.int32)
+        pushing = policy.state.replace(skill=jnp.asarray(one), stage=jnp.asarray(3 * one),
+                                       needs_plan=jnp.zeros(1, bool))
+        direction = np.asarray(pushing.direction[0, 1])
+        assert int(pushing.kind[0, 1]) == MOVE and bool(pushing.touching[0, 1])
+        now = np.asarray(state.data.object_pos)
+        lost = {}
+        for went in (0.0, 0.002):
+            oracle = pushing.replace(last_object=jnp.asarray(now - went * direction, jnp.float32))
+            after, _ = rollout._act(oracle, state.data.for_jit(), state.task, env.geometry, follow_env=False)
+            lost[went] = int(after.lost[0])
+    assert lost == {0.0: 1, 0.002: 0}
+
 @pytest.mark.slow
 def test_a_scene_planned_alone_gets_the_plan_it_gets_in_a_batch(episodes):
     """A batch of one is planned without vmap (faster on a CPU); its grasp plan is the batched plan of that scene."""

@@ -89,6 +89,8 @@ PUSH_APPROACH_NEAR = 0.03
 the push point, pushes from there (`push_approached`)."""
 PUSH_SLIP_STEPS = 2
 """Steps a push goes on without touching before the fingertip approaches the push point again."""
+PUSH_ADVANCING = 0.001
+"""Metres the object went along a push since the previous step that count as the robot pushing it."""
 PUSH_LOOKAHEAD = 0.04
 PUSH_STOP = 0.006
 """A push heads for the point this far ahead of the object on its line (m), and stops this short of the goal."""
@@ -171,6 +173,7 @@ class OracleState:
     #                           in a turn's carry back the TCP's goal
     anchor_quat: jnp.ndarray
     turn_progress: jnp.ndarray  # (B,) fraction of the planned turn commanded so far
+    last_object: jnp.ndarray   # (B, 3) object position at the previous step
     key: jnp.ndarray
 
 
@@ -223,7 +226,7 @@ def init(chains: dict, data, geometry: PartGeometry, keys: jax.Array) -> OracleS
         turn_angle=jnp.zeros(batch, jnp.float32), turn_pivot=jnp.zeros((batch, 3), jnp.float32),
         turn_raise=jnp.zeros(batch, jnp.float32), anchor_pos=jnp.asarray(data.tcp_pos, jnp.float32),
         anchor_quat=jnp.asarray(data.tcp_quat, jnp.float32), turn_progress=jnp.zeros(batch, jnp.float32),
-        key=jnp.asarray(keys))
+        last_object=jnp.asarray(data.object_pos, jnp.float32), key=jnp.asarray(keys))
 
 
 # --- planning -----------------------------------------------------------------------------------------------
@@ -755,7 +758,10 @@ def _act_one(o: OracleState, data, geo: PartGeometry, rows, facts, env, phase_go
     touching_part = predicates.touching_points(data, focus_points, focus_valid)
     # The fingers press the object (TOUCHING's fingertip point may still be more than 1 cm from it).
     pressing = predicates.finger_on_object(data, geo)
-    in_contact = touching_now | pressing
+    # The object going along the push counts as touched: the hand itself may push it (a laptop's lid leaning over
+    # the fingers), and the push then steers it like one the fingers make.
+    advancing = push & ((data.object_pos - o.last_object) @ direction > PUSH_ADVANCING)
+    in_contact = touching_now | pressing | advancing
     tip = tcp + predicates.FINGERTIP_OFFSET * quat_rotate(o.cmd_quat, up)
     # Pure pursuit: head for the point PUSH_LOOKAHEAD ahead of the object on the line p0 -> goal, so a sideways
     # drift is pushed back onto the line; the fingertip keeps to the line through the object's middle along it.
@@ -903,4 +909,4 @@ def _act_one(o: OracleState, data, geo: PartGeometry, rows, facts, env, phase_go
         cmd_pos=jnp.where(keep, o.cmd_pos, pos), cmd_quat=jnp.where(keep, o.cmd_quat, quat),
         finger=jnp.where(keep, o.finger, finger), grip_width=data.finger_qpos[0].astype(jnp.float32),
         target_pos=target_pos, anchor_pos=jnp.where(keep, o.anchor_pos, anchor_pos),
-        turn_progress=jnp.where(finished, 0.0, turn_progress))
+        turn_progress=jnp.where(finished, 0.0, turn_progress), last_object=data.object_pos.astype(jnp.float32))
