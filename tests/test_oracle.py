@@ -357,17 +357,18 @@ def test_an_object_going_along_a_push_counts_as_touched(episodes):
     with _env(episode) as env:
         state, policy = _started(env, [episode])
         one = np.ones(1, np.int32)
-        pushing = policy.state.replace(skill=jnp.asarray(one), stage=jnp.asarray(3 * one),
-                                       needs_plan=jnp.zeros(1, bool))
-        direction = np.asarray(pushing.direction[0, 1])
-        assert int(pushing.kind[0, 1]) == MOVE and bool(pushing.touching[0, 1])
+        in_push = policy.state.replace(skill=jnp.asarray(one), stage=jnp.asarray(3 * one),
+                                      needs_plan=jnp.zeros(1, bool))
+        direction = np.asarray(in_push.direction[0, 1])
+        assert int(in_push.kind[0, 1]) == MOVE and bool(in_push.touching[0, 1])
         now = np.asarray(state.data.object_pos)
         lost = {}
         for went in (0.0, 0.002):
-            oracle = pushing.replace(last_object=jnp.asarray(now - went * direction, jnp.float32))
+            oracle = in_push.replace(last_object=jnp.asarray(now - went * direction, jnp.float32))
             after, _ = rollout._act(oracle, state.data.for_jit(), state.task, env.geometry, follow_env=False)
             lost[went] = int(after.lost[0])
     assert lost == {0.0: 1, 0.002: 0}
+
 
 @pytest.mark.slow
 def test_a_scene_planned_alone_gets_the_plan_it_gets_in_a_batch(episodes):

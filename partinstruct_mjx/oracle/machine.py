@@ -413,10 +413,10 @@ def _object_cloud(data, geo: PartGeometry):
 
 def _take_candidate(o: OracleState, key, kind_matches, positions, quats, axes, openings, reachable,
                     tiers) -> OracleState:
-    """Take the (`attempt` + `skip`)-th reachable candidate in rank order, lower `tiers` (a better outlook) first
-    (a retry skips the ones tried before, but not past the last of the best tier: passing over a fresh sample's
-    few grasps the look-ahead found clear took one it had found blocked; the last one when fewer are left) as the
-    grasp or touch pose.
+    """Take the (`attempt` + `skip`)-th reachable candidate in rank order, lower `tiers` (a better outlook) first,
+    as the grasp or touch pose; the last one when fewer are left. A retry's skip passes over the ones tried before,
+    but no further than the best tier's last candidate (passing over a fresh sample's few grasps the look-ahead found
+    clear took one it had found blocked).
     Nothing found: the candidates are a random sample (a thin part has few grasps), so draw again next step while
     attempts are left, then fail the skill."""
     order = jnp.argsort(tiers * positions.shape[0] + jnp.arange(positions.shape[0]))
