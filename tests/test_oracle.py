@@ -290,20 +290,25 @@ def test_a_turn_that_moved_the_object_carries_it_back(episodes):
 
 def test_a_pre_shaped_grasp_approaches_with_its_opening(episodes):
     # dispenser_000, type 1 ('right'): the planner's grasp pinches a thin section, so the fingers open to it, not
-    # fully, from the via point until they close.
+    # fully, from the via point until they close: measured, each finger stands at the planned opening (the raw
+    # opening as the control held them 6-9 mm narrower, and pads meant to pass a bucket's rim landed on it).
     episode = next(e for e in episodes if e.obj_id == "dispenser_000" and e.task_type == 1)
     with _env(episode) as env:
         state, policy = _started(env, [episode])
         approaching = []
-        for _ in range(40):
+        for _ in range(100):
             action = policy.act(env, state)
-            if 1 <= int(policy.state.stage[0]) <= 3:
-                approaching.append((float(action[0, -1]), float(policy.state.target_open[0])))
+            if int(policy.state.stage[0]) > 3:
+                break
+            if int(policy.state.stage[0]) == 3:
+                approaching.append((float(action[0, -1]), float(policy.state.target_open[0]),
+                                    float(state.data.finger_qpos[0].mean())))
             state = env.step(state, action)
     assert approaching
-    fingers, openings = np.array(approaching).T
+    controls, openings, fingers = np.array(approaching).T
     assert openings.max() < panda.FINGER_OPEN - 0.002
-    np.testing.assert_allclose(fingers, openings, atol=1e-6)
+    np.testing.assert_allclose(controls, panda.finger_ctrl(openings), atol=1e-6)
+    np.testing.assert_allclose(fingers, openings, atol=1.5e-3)
 
 
 def test_oracle_follows_a_skill_mode_env_through_chained_moves(episodes):

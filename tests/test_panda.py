@@ -96,6 +96,23 @@ def test_closed_gripper_presses_a_thin_part_harder_than_grasping_needs():
     assert abs(data.actuator_force[gripper]) < 1e-6
 
 
+def test_finger_ctrl_holds_the_unloaded_fingers_at_the_opening():
+    """A pre-shaped grasp opens each finger to the opening it planned: simulated, the free fingers settle within
+    0.5 mm of it (the raw control 0.016 held them at 6 mm); the constants are the model's actuator."""
+    model, data = _robot()
+    gripper = model.actuator(panda.GRIPPER_ACTUATOR).id
+    np.testing.assert_allclose(model.actuator_gainprm[gripper, 0], panda.GRIPPER_GAIN)
+    np.testing.assert_allclose(model.actuator_biasprm[gripper, :2], panda.GRIPPER_BIAS)
+    data.qpos[:7] = panda.HOME_ARM_QPOS
+    data.ctrl[:7] = panda.HOME_ARM_QPOS
+    for opening in (0.008, 0.016, 0.03):
+        data.ctrl[gripper] = float(panda.finger_ctrl(opening))
+        for _ in range(int(2.0 / model.opt.timestep)):
+            mujoco.mj_step(model, data)
+        np.testing.assert_allclose(data.qpos[7:9], opening, atol=5e-4)
+    np.testing.assert_allclose(panda.finger_ctrl(panda.FINGER_OPEN), panda.FINGER_OPEN, rtol=1e-6)
+
+
 def test_finger_pads_are_the_pads_the_grasp_planner_assumes():
     # The planner places what it pinches on a pad PAD_CENTRE +- PAD_HALF_LENGTH along the TCP's z; a shorter
     # physical pad left a pot's ear above its upper edge, where the closing finger pushed it away.

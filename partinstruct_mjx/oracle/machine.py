@@ -723,7 +723,8 @@ def _act_one(o: OracleState, data, geo: PartGeometry, rows, facts, env, phase_go
     reach_speed = jnp.where(stage == 3, jnp.where(is_touch, PUSH_SPEED, APPROACH_SPEED), FREE_SPEED)
     reach_quat = jnp.where(stage == 0, o.cmd_quat, o.target_quat)
     reach_finger = jnp.where(is_touch | (stage == 4) | (stage == 5), panda.FINGER_CLOSED,
-                             jnp.where((stage >= 1) & (stage <= 3), o.target_open, panda.FINGER_OPEN))
+                             jnp.where((stage >= 1) & (stage <= 3), panda.finger_ctrl(o.target_open),
+                                       panda.FINGER_OPEN))
     pos_r, quat_r = _toward(o.cmd_pos, o.cmd_quat, reach_goal, reach_quat, reach_speed, TURN_SPEED)
     at_goal = (jnp.linalg.norm(pos_r - reach_goal) < 1e-6) & (jnp.linalg.norm(tcp - reach_goal) < ARRIVED)
     reach_next = jnp.select(
