@@ -288,6 +288,20 @@ def test_a_turn_that_moved_the_object_carries_it_back(episodes):
     assert bool(state.task.success[0])
 
 
+def test_a_flat_part_on_the_table_is_pinched_with_a_narrower_pre_shape():
+    # A knife's blade lying flat: a 1 cm wide, 4 mm thick bar on the table. Its thin-wall grasps open each pad only
+    # LOW_GRASP_MARGIN past it (the first pad to arrive pushes a flat object aside while the fingers close); the
+    # same bar high above the table (a pot's ear, the test above) keeps OPEN_MARGIN.
+    points, normals = _box_cloud([-0.05, -0.005, TABLE_HEIGHT], [0.05, 0.005, TABLE_HEIGHT + 0.004], spacing=0.002)
+    points, normals = jnp.asarray(points, jnp.float32), jnp.asarray(normals, jnp.float32)
+    valid = jnp.ones(len(points), bool)
+    grasps = candidates.grasp_candidates(points, normals, valid, points, normals, valid, jax.random.PRNGKey(0))
+    score, opening = np.asarray(grasps["score"]), np.asarray(grasps["opening"])
+    pre_shaped = np.isfinite(score) & (opening < panda.FINGER_OPEN - 1e-3)
+    assert pre_shaped.any()
+    np.testing.assert_allclose(opening[pre_shaped], 0.005 + candidates.LOW_GRASP_MARGIN, atol=0.002)
+
+
 def test_a_pre_shaped_grasp_approaches_with_its_opening(episodes):
     # dispenser_000, type 1 ('right'): the planner's grasp pinches a thin section, so the fingers open to it, not
     # fully, from the via point until they close: measured, each finger stands at the planned opening (the raw
