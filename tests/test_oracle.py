@@ -496,6 +496,64 @@ def test_the_way_to_a_via_point_goes_over_the_object_first():
     np.testing.assert_allclose(np.asarray(machine.over_to(via, far_tcp, 0.05)), np.asarray(via))
 
 
+def test_the_way_to_a_via_point_rises_first_from_beside_the_object():
+    # Backed off low beside a 25 cm display after a touch, bound for its other side: straight up until the TCP is
+    # FINGERTIP_OFFSET over the top (a line rising across the display swept the hand through it), then across.
+    top, via = 0.25, jnp.array([-0.15, 0.0, 0.16])
+    over = top + predicates.FINGERTIP_OFFSET + machine.DETOUR_CLEARANCE
+    low = jnp.array([0.15, 0.0, 0.2])
+    np.testing.assert_allclose(np.asarray(machine.over_to(via, low, top)), [0.15, 0.0, over], atol=1e-6)
+    risen = jnp.array([0.15, 0.0, top + predicates.FINGERTIP_OFFSET + 0.001])
+    np.testing.assert_allclose(np.asarray(machine.over_to(via, risen, top)), [-0.15, 0.0, over], atol=1e-6)
+
+
+def test_a_touch_backs_off_once_its_approach_tips_the_object():
+    upright = machine.object_up(jnp.array([1.0, 0.0, 0.0, 0.0]))
+    turned = machine.object_up(axis_angle_to_quat(jnp.array([0.0, 0.0, 1.0]), 1.0))
+    leaning = machine.object_up(axis_angle_to_quat(jnp.array([1.0, 0.0, 0.0]), 1.5 * machine.TOUCH_TIPPING))
+    slightly = machine.object_up(axis_angle_to_quat(jnp.array([0.0, 1.0, 0.0]), 0.5 * machine.TOUCH_TIPPING))
+    # A turn about the vertical is no tilt; a lean past TOUCH_TIPPING is, a smaller one is not.
+    assert not bool(machine.tipped(turned, upright)) and not bool(machine.tipped(slightly, upright))
+    assert bool(machine.tipped(leaning, upright)) and bool(machine.tipped(leaning, turned))
+
+
+def _wall(x, y, z):
+    """Points (N, 3) of an axis-aligned grid spanning the given ranges (one value: a plane)."""
+    return np.stack(np.meshgrid(x, y, z), -1).reshape(-1, 3).astype(np.float32)
+
+
+def test_a_touchs_hand_comes_in_clear_of_the_object():
+    # A screen 2 cm thick (y in [0.03, 0.05]) standing along x in [0, 0.2], 25 cm tall, and a touch 3 cm in front of
+    # it (y = 0) at x = 0.05, where the fingertip's own way in is clear of the screen.
+    screen = _wall(np.linspace(0.0, 0.2, 41), np.linspace(0.03, 0.05, 5), np.linspace(0.06, 0.31, 51))
+    valid = np.ones(len(screen), bool)
+    point = jnp.array([0.05, 0.0, 0.15])
+    tilted = jnp.array([-np.cos(0.8), 0.0, -np.sin(0.8)], jnp.float32)  # coming down from +x along the screen
+    assert bool(candidates.clear_rays(point[None], -tilted, screen, valid)[0])
+    # The hand, 23 cm wide along the closing axis (y), meets the screen's upper part behind the fingertip ...
+    assert bool(candidates.touch_hand_blocked(point, tilted, screen, valid))
+    # ... but not when it comes level from the screen's free side (-y).
+    assert not bool(candidates.touch_hand_blocked(point, jnp.array([0.0, 1.0, 0.0]), screen, valid))
+
+
+def test_a_low_plate_does_not_hide_a_higher_face_from_a_side_touch():
+    # A display: a screen (y in [0.03, 0.05], 2-20 cm above the table) on a stand plate 1 cm above the table that
+    # reaches farther out towards -y (to y = 0). The part is the screen's and plate's right (-y) end.
+    table = TABLE_HEIGHT
+    screen = _wall(np.linspace(-0.1, 0.1, 41), np.linspace(0.03, 0.05, 5), np.linspace(table + 0.02, table + 0.2, 37))
+    plate = _wall(np.linspace(-0.05, 0.05, 21), np.linspace(0.0, 0.06, 13), [table + 0.01])
+    points = np.concatenate([screen, plate])
+    valid = np.ones(len(points), bool)
+    part = points[:, 1] < 0.045
+    point, axis, score = candidates.touch_candidates(*map(jnp.asarray, (points, valid, points, part)), jnp.zeros(3))
+    # Side 'right' (the fingertip comes from -y, moving +y), level: the plate is too low to touch, the screen's face
+    # at y = 0.03 is not.
+    right = 1 * len(candidates.TOUCH_TILTS)
+    assert np.asarray(axis[right]).round(3).tolist() == [0.0, 1.0, 0.0]
+    assert np.isfinite(float(score[right]))
+    assert abs(float(point[right][1]) - 0.03) < 0.005 and float(point[right][2]) > table + candidates.MIN_TOUCH_HEIGHT
+
+
 def test_a_fingertip_that_rode_over_goes_back_round_above_the_object():
     # A 1.5 cm flat object pushed along +y from its near face at y = 0 (push point 8 mm above the table at z = 0).
     top, push_point, direction = 0.015, jnp.array([0.0, 0.0, 0.008]), jnp.array([0.0, 1.0, 0.0])

@@ -20,7 +20,7 @@ from partinstruct_mjx.control.rotations import matrix_to_quat
 from partinstruct_mjx.oracle import pushing as pushing_module
 from partinstruct_mjx.sim.panda import FINGER_OPEN
 from partinstruct_mjx.sim.scene import TABLE_HEIGHT
-from partinstruct_mjx.tasks.predicates import masked_mean
+from partinstruct_mjx.tasks.predicates import FINGERTIP_OFFSET, masked_mean
 from partinstruct_mjx.vectors import dot3, norm3
 
 PAD_CENTRE = 0.0394
@@ -334,6 +334,10 @@ MIN_TOUCH_HEIGHT = 0.02
 """Lowest touch point above the table (m): the closed fingertips are about 2.5 cm wide."""
 LOW_TOUCH_HEIGHT = 0.10
 """Touch points below this world z are not touched with a level hand (the hand would hit the table)."""
+HAND_BLOCKED_COST = 0.5
+"""Score a touch (other than at a push point) loses when the hand (behind the closed fingers) would meet the object
+on its way in: a hand tilted down onto a display's 'right' met the screen's top edge and tipped the display over
+before the fingertip got there. Such touches still rank after the clear ones (the part may have no other)."""
 
 
 def touch_candidates(object_points, object_valid, part_points, part_valid, push_side):
@@ -349,30 +353,57 @@ def touch_candidates(object_points, object_valid, part_points, part_valid, push_
     def one(side, tilt):
         is_top = side[2] > 0.5
         z_axis = jnp.where(is_top, -side, -jnp.cos(tilt) * side - jnp.sin(tilt) * jnp.array([0.0, 0.0, 1.0]))
-        # Points the fingertip can come to along its axis without the object in the way; of those, the ones within
-        # pushing.FACE_BAND of the farthest out towards the side (the part's face on that side, or what is open of it).
-        free = pushing_module.face(points, valid & clear_rays(points, -z_axis, object_points, object_valid), side)
+        # Points the fingertip can come to along its axis without the object in the way, high enough for the hand
+        # (below); of those, the ones within pushing.FACE_BAND of the farthest out towards the side (the part's face
+        # on that side, or what is open of it): a display's stand plate, low and farthest out, hid its screen's side.
+        high = is_top | (_touch_high_enough(points[:, 2]) & ((points[:, 2] > LOW_TOUCH_HEIGHT) | (tilt > 0)))
+        free = pushing_module.face(points, valid & high & clear_rays(points, -z_axis, object_points, object_valid),
+                                   side)
         # Before a push the fingertip goes where the push will press (pushing.py: low, near the object's middle, on
-        # the face towards the pusher); other touches take the free point nearest the part's centre.
+        # the face towards the pusher); other touches take the free point nearest the part's centre, of those whose
+        # hand comes in clear of the object first.
         pushing = (side @ push_side) > 0.5
-        cost = jnp.where(free, jnp.linalg.norm(points - part_centre, axis=-1), jnp.inf)
+        blocked = jax.vmap(touch_hand_blocked, in_axes=(0, None, None, None))(points, z_axis, object_points,
+                                                                              object_valid)
+        cost = jnp.where(free, jnp.linalg.norm(points - part_centre, axis=-1) + HAND_BLOCKED_COST * blocked, jnp.inf)
         push_at, push_ok = pushing_module.push_point(part_points, part_valid, object_points, object_valid, -side)
         point = jnp.where(pushing, push_at, points[jnp.argmin(cost)])
+        # (A push point's touches keep their order: the box is loose, and a bucket's push point under its rim was
+        # touched with the steeper hand after the flatter one missed.)
+        hand_blocked = ~pushing & blocked[jnp.argmin(cost)]
         reachable = jnp.where(pushing, push_ok, free.any())
         # Side touches keep the closed fingers off the table (a push point is high enough for a tilted hand); a top
         # touch reaches any part from above.
         above_table = (is_top | (pushing & (tilt > 0))
-                       | ((point[2] > TABLE_HEIGHT + MIN_TOUCH_HEIGHT) & ((point[2] > LOW_TOUCH_HEIGHT) | (tilt > 0))))
+                       | (_touch_high_enough(point[2]) & ((point[2] > LOW_TOUCH_HEIGHT) | (tilt > 0))))
         # The top side has one pose; its tilted copies are dropped.
         above_table = above_table & ~(is_top & (tilt > 0))
         alignment = (part_centre - object_centre) @ side
         # Before a push the side opposite the push direction comes first (the push can start from there).
-        score = alignment - 0.01 * tilt + jnp.where(pushing, 1.0, 0.0)
+        score = alignment - 0.01 * tilt + jnp.where(pushing, 1.0, 0.0) - jnp.where(hand_blocked, HAND_BLOCKED_COST, 0.0)
         return point, z_axis, jnp.where(reachable & above_table, score, -jnp.inf)
 
     sides = jnp.repeat(jnp.asarray(TOUCH_SIDES), len(TOUCH_TILTS), axis=0)
     tilts = jnp.tile(jnp.asarray(TOUCH_TILTS), TOUCH_SIDES.shape[0])
     return jax.vmap(one)(sides, tilts)
+
+
+def _touch_high_enough(height):
+    """Whether a side touch at world `height` keeps the closed fingertips off the table."""
+    return height > TABLE_HEIGHT + MIN_TOUCH_HEIGHT
+
+
+def touch_hand_blocked(point, z_axis, object_points, object_valid):
+    """Whether an object point lies in the box the hand (behind the closed fingers: HAND_BACK behind the pads'
+    middle, HAND_HALF_WIDTH by HAND_HALF_LENGTH) sweeps on its way in along `z_axis` (from PREGRASP_DISTANCE and more
+    back) to the touch pose whose fingertip presses `point` (machine.touch_poses, touch_quat's axes)."""
+    x_axis, y_axis, _ = touch_axes(z_axis)
+    pads = point - (FINGERTIP_OFFSET - TOUCH_DEPTH - PAD_CENTRE) * z_axis
+    d = object_points - pads
+    t, u, v = dot3(d, z_axis), dot3(d, x_axis), dot3(d, y_axis)
+    inside = ((t < -HAND_BACK) & (t > -HAND_BACK - PREGRASP_DISTANCE - 0.06) & (jnp.abs(u) < HAND_HALF_WIDTH)
+              & (jnp.abs(v) < HAND_HALF_LENGTH))
+    return (object_valid & inside).any()
 
 
 def clear_rays(points, ray, object_points, object_valid):
@@ -387,12 +418,16 @@ def clear_rays(points, ray, object_points, object_valid):
     return ~blocked.any(axis=1)
 
 
-def touch_quat(z_axis: jnp.ndarray) -> jnp.ndarray:
-    """TCP orientation for a touch: z along `z_axis`, x pointing as far down as possible (the spec's side-approach
-    frame) or along -x world for a top-down touch."""
+def touch_axes(z_axis: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray, jnp.ndarray]:
+    """The TCP's axes (x, y, z) for a touch: z along `z_axis`, x pointing as far down as possible (the spec's
+    side-approach frame) or along -x world for a top-down touch."""
     down = jnp.array([0.0, 0.0, -1.0])
     x = down - (down @ z_axis) * z_axis
     x = jnp.where(jnp.linalg.norm(x) < 1e-3, jnp.array([-1.0, 0.0, 0.0]), x)
     x = x / jnp.linalg.norm(x)
-    y = jnp.cross(z_axis, x)
-    return matrix_to_quat(jnp.stack([x, y, z_axis], axis=-1))
+    return x, jnp.cross(z_axis, x), z_axis
+
+
+def touch_quat(z_axis: jnp.ndarray) -> jnp.ndarray:
+    """TCP orientation for a touch (touch_axes)."""
+    return matrix_to_quat(jnp.stack(touch_axes(z_axis), axis=-1))

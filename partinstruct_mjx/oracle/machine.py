@@ -107,6 +107,9 @@ TURN_ACCELERATION = 0.004
 18 steps), as carries do. Kept with the grasps' lever term and the turn's end (docs/oracle.md: 381 -> 390 of 435
 episodes together, 387 with the lever term alone); a contact trace of a dropped scissors turn found no twist in
 the pads before the drop, so the ramp is not known to fix that cause."""
+TOUCH_TIPPING = 0.1
+"""Radians a touch's approach may tilt the object before it backs off and takes the next candidate: the pads met a
+tall, light object (a display) before the fingertip reached the part, and pushing on tipped it over."""
 RECENTRE_START = 0.03
 RECENTRE_DONE = 0.015
 RECENTRE_STEPS = 40
@@ -174,6 +177,7 @@ class OracleState:
     anchor_quat: jnp.ndarray
     turn_progress: jnp.ndarray  # (B,) fraction of the planned turn commanded so far
     last_object: jnp.ndarray   # (B, 3) object position at the previous step
+    approach_up: jnp.ndarray   # (B, 3) the world's up axis in the object's frame when a touch's approach began
     key: jnp.ndarray
 
 
@@ -226,7 +230,8 @@ def init(chains: dict, data, geometry: PartGeometry, keys: jax.Array) -> OracleS
         turn_angle=jnp.zeros(batch, jnp.float32), turn_pivot=jnp.zeros((batch, 3), jnp.float32),
         turn_raise=jnp.zeros(batch, jnp.float32), anchor_pos=jnp.asarray(data.tcp_pos, jnp.float32),
         anchor_quat=jnp.asarray(data.tcp_quat, jnp.float32), turn_progress=jnp.zeros(batch, jnp.float32),
-        last_object=jnp.asarray(data.object_pos, jnp.float32), key=jnp.asarray(keys))
+        last_object=jnp.asarray(data.object_pos, jnp.float32),
+        approach_up=jax.vmap(object_up)(jnp.asarray(data.object_quat, jnp.float32)), key=jnp.asarray(keys))
 
 
 # --- planning -----------------------------------------------------------------------------------------------
@@ -592,10 +597,16 @@ def _push_pose(point, direction, tilt):
 
 def over_to(via, tcp, object_top):
     """The goal on the way to a grasp's or touch's via point: first above it, with the TCP FINGERTIP_OFFSET +
-    DETOUR_CLEARANCE over the object's top, then down to it once the TCP is over it. A straight line to a via point on
-    the far side of a tall object swept the hand through it (a display knocked over on the way to its front)."""
-    over = via.at[2].set(jnp.maximum(via[2], object_top + predicates.FINGERTIP_OFFSET + DETOUR_CLEARANCE))
-    return jnp.where(jnp.linalg.norm((tcp - via)[:2]) > ARRIVED, over, via)
+    DETOUR_CLEARANCE over the object's top (straight up first from a TCP less than FINGERTIP_OFFSET above the top,
+    where the fingers may reach down beside it), then down to it once the TCP is over it. A straight line to a via point on the far side of a tall object swept the hand through it (a display knocked
+    over on the way to its front), and so did a line rising across it from a low start (a display's touch backing
+    off from one side and going to the other)."""
+    clear = object_top + predicates.FINGERTIP_OFFSET + DETOUR_CLEARANCE
+    over = via.at[2].set(jnp.maximum(via[2], clear))
+    rise = tcp.at[2].set(over[2])
+    far = jnp.linalg.norm((tcp - via)[:2]) > ARRIVED
+    low = tcp[2] < object_top + predicates.FINGERTIP_OFFSET
+    return jnp.where(far, jnp.where(low, rise, over), via)
 
 
 def over_and_back(goal, cmd_pos, tip, push_point, direction, z_axis, object_top, in_contact):
@@ -640,6 +651,17 @@ def rim_point(points, valid, direction, tip):
     sideways = (offset - (offset @ direction)[:, None] * direction) * jnp.array([1.0, 1.0, 0.0])
     top = jnp.argmax(jnp.where(rear, points[:, 2] - 0.5 * jnp.linalg.norm(sideways, axis=-1), -jnp.inf))
     return points[top] + jnp.array([0.0, 0.0, RIM_ABOVE])
+
+
+def object_up(object_quat):
+    """The world's up axis in the frame of an object at orientation `object_quat` (its tilt, whatever its yaw)."""
+    inverse = object_quat * jnp.array([1.0, -1.0, -1.0, -1.0])
+    return quat_rotate(inverse, jnp.array([0.0, 0.0, 1.0]))
+
+
+def tipped(up_now, up_before):
+    """Whether the object tilted more than TOUCH_TIPPING between two of its `object_up` axes."""
+    return up_now @ up_before < jnp.cos(TOUCH_TIPPING)
 
 
 def reach_counted(effects, is_touch, stage, grip_width, previous_width):
@@ -733,6 +755,9 @@ def _act_one(o: OracleState, data, geo: PartGeometry, rows, facts, env, phase_go
          (jnp.linalg.norm(pos_r - reach_goal) < 1e-6) & ((jnp.linalg.norm(tcp - reach_goal) < 0.004) | (steps > 25)),
          steps >= CLOSE_STEPS, steps >= 10, at_goal | (steps > 20)], False)
     reach_done = reach_counted(effects, is_touch, stage, data.finger_qpos[0], o.grip_width)
+    up_now = object_up(data.object_quat)
+    tipping = is_touch & (stage == 3) & (steps > 0) & tipped(up_now, o.approach_up)
+    reach_next = reach_next | tipping
     retry = reach_next & ((stage == 5) | (is_touch & (stage == 3)))
     reach_stage = jnp.where(retry, 6, jnp.where(reach_next & (stage == 6), 0, stage + reach_next.astype(jnp.int32)))
     replan = reach_next & (stage == 6)
@@ -910,4 +935,5 @@ def _act_one(o: OracleState, data, geo: PartGeometry, rows, facts, env, phase_go
         cmd_pos=jnp.where(keep, o.cmd_pos, pos), cmd_quat=jnp.where(keep, o.cmd_quat, quat),
         finger=jnp.where(keep, o.finger, finger), grip_width=data.finger_qpos[0].astype(jnp.float32),
         target_pos=target_pos, anchor_pos=jnp.where(keep, o.anchor_pos, anchor_pos),
-        turn_progress=jnp.where(finished, 0.0, turn_progress), last_object=data.object_pos.astype(jnp.float32))
+        turn_progress=jnp.where(finished, 0.0, turn_progress), last_object=data.object_pos.astype(jnp.float32),
+        approach_up=jnp.where((stage == 3) & (steps == 0), up_now, o.approach_up).astype(jnp.float32))
