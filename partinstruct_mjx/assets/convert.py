@@ -25,7 +25,7 @@ from partinstruct_mjx.assets.catalog import update_catalog
 from partinstruct_mjx.assets.decompose import (CONVERTER_VERSION, DecompositionConfig, HullCache, decompose,
                                                decomposition_key, hull_budgets)
 from partinstruct_mjx.assets.geometry import AssembledObject, assemble
-from partinstruct_mjx.assets.mjcf import PhysicsConfig, write_mjcf
+from partinstruct_mjx.assets.mjcf import MJCF_VERSION, PhysicsConfig, write_mjcf
 from partinstruct_mjx.assets.partnet import PartNetObject, category_slug, is_semantic_label, read_partnet_object
 from partinstruct_mjx.assets.surface import sample_parts
 from partinstruct_mjx.assets.timeout_pool import run_jobs
@@ -139,7 +139,8 @@ def summary_table(records: list[ConversionRecord]) -> str:
 
 def source_hash(obj: PartNetObject, config: ConvertConfig) -> str:
     """Hash of every input file and every output-relevant setting."""
-    digest = hashlib.sha256(json.dumps([CONVERTER_VERSION, config.output_settings()], sort_keys=True).encode())
+    digest = hashlib.sha256(json.dumps([CONVERTER_VERSION, MJCF_VERSION, config.output_settings()],
+                                       sort_keys=True).encode())
     for path in obj.source_files:
         digest.update(path.name.encode())
         digest.update(path.read_bytes())
@@ -268,6 +269,7 @@ def _meta(job: _Job, hulls, stats: dict, config: ConvertConfig) -> dict:
                                                        for p in obj.source_files}},
         "source_hash": job.source_hash,
         "converter_version": CONVERTER_VERSION,
+        "mjcf_version": MJCF_VERSION,
         "conversion": config.output_settings(),
         "stats": stats,
     }

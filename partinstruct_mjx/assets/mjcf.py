@@ -22,6 +22,11 @@ HELPER_MASS = 1e-4
 """Mass of bodies without collision geometry (e.g. `*_helper` links of screw joints), kg."""
 
 
+MJCF_VERSION = "2"
+"""Bumped whenever a change alters the MJCF written for the same hulls and settings (2: joints hold the heavier
+side, 2026-12-01)."""
+
+
 @dataclass(frozen=True)
 class PhysicsConfig:
     """Mass and joint behaviour of converted objects."""
@@ -34,7 +39,8 @@ class PhysicsConfig:
     joint_frictionloss: float = 0.02
     """Least dry friction of a joint (N m or N); raised per joint to `hold_factor` x the gravity load it carries."""
     hold_factor: float = 2.0
-    """Joints hold this multiple of their subtree's weight torque (hinges) or weight (slides): lids do not flop."""
+    """Joints hold this multiple of the weight torque (hinges) or weight (slides) of the heavier side, the subtree or
+    the rest of the object, whichever is held: lids do not flop, and a box lifted by its lid does not swing open."""
     joint_armature: float = 0.01
     """Reflected inertia (kg m^2 or kg): MuJoCo's dry friction is a soft constraint and light links creep through it
     (a box lid crept 0.38 rad in 5 s with 1e-4, 0.007 rad with 0.01)."""
@@ -119,7 +125,9 @@ def write_mjcf(folder: Path, name: str, obj: AssembledObject, hulls: list[list[H
 
 
 def _holding_friction(obj: AssembledObject, hulls: list[list[Hull]], density: float, body, physics) -> float:
-    """Dry friction that holds the joint of `body` against gravity in any orientation of the object."""
+    """Dry friction that holds the joint of `body` against gravity in any orientation of the object, whichever side
+    of it is held: the subtree hanging from the rest (a lid, the rest on the table) or the rest hanging from the
+    subtree (a box lifted by its lid, a knife by its blade)."""
     world = {}
     for b in obj.bodies:
         world[b.name] = b.transform if b.parent is None else world[b.parent] @ b.transform
@@ -128,21 +136,21 @@ def _holding_friction(obj: AssembledObject, hulls: list[list[Hull]], density: fl
         if b.parent in in_subtree:
             in_subtree.add(b.name)
     to_body = np.linalg.inv(world[body.name])
-    mass, moment = 0.0, np.zeros(3)
+    mass, moment = np.zeros(2), np.zeros((2, 3))  # [the subtree, the rest of the object]
     for piece, part_hulls in zip(obj.collision, hulls):
-        if piece.body not in in_subtree:
-            continue
+        side = 0 if piece.body in in_subtree else 1
         for vertices, faces in part_hulls:
             hull = trimesh.Trimesh(vertices, faces)
             centre = (to_body @ world[piece.body] @ np.append(hull.center_mass, 1.0))[:3]
-            mass += density * hull.volume
-            moment += density * hull.volume * centre
+            mass[side] += density * hull.volume
+            moment[side] += density * hull.volume * centre
     weight = 9.81 * mass
     if body.joint.kind == "slide":
-        load = weight
+        load = weight.max()
     else:
-        com = moment / max(mass, 1e-12)
-        load = weight * np.linalg.norm(com - (com @ body.joint.axis) * body.joint.axis)
+        com = moment / np.maximum(mass, 1e-12)[:, None]
+        axis = body.joint.axis
+        load = (weight * np.linalg.norm(com - (com @ axis)[:, None] * axis, axis=1)).max()
     return max(physics.joint_frictionloss, physics.hold_factor * load)
 
 
