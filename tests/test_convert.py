@@ -182,6 +182,17 @@ def test_rerun_is_cached_and_a_setting_change_reconverts(tmp_path):
     assert np.load(third[0].output / "parts.npz")["points"].shape[1] == 256
 
 
+def test_an_mjcf_writer_change_reconverts(monkeypatch):
+    # Changing what is written for the same hulls (convert.MJCF_VERSION) must change the hash that decides a rerun,
+    # or objects converted before the change would be kept as cached.
+    from partinstruct_mjx.assets import convert
+
+    obj, config = read_partnet_object(SAMPLES / "100454"), ConvertConfig()
+    before = convert.source_hash(obj, config)
+    monkeypatch.setattr(convert, "MJCF_VERSION", convert.MJCF_VERSION + "-next")
+    assert convert.source_hash(obj, config) != before
+
+
 def test_rigid_option_freezes_every_joint(tmp_path):
     (record,) = convert_objects([SAMPLES / "100454"], tmp_path / "out", _fast_config(tmp_path / "c", rigid=True),
                                 progress=False)

@@ -356,7 +356,7 @@ def touch_candidates(object_points, object_valid, part_points, part_valid, push_
         # Points the fingertip can come to along its axis without the object in the way, high enough for the hand
         # (below); of those, the ones within pushing.FACE_BAND of the farthest out towards the side (the part's face
         # on that side, or what is open of it): a display's stand plate, low and farthest out, hid its screen's side.
-        high = is_top | (_touch_high_enough(points[:, 2]) & ((points[:, 2] > LOW_TOUCH_HEIGHT) | (tilt > 0)))
+        high = is_top | _side_touch_clears_table(points[:, 2], tilt)
         free = pushing_module.face(points, valid & high & clear_rays(points, -z_axis, object_points, object_valid),
                                    side)
         # Before a push the fingertip goes where the push will press (pushing.py: low, near the object's middle, on
@@ -367,15 +367,15 @@ def touch_candidates(object_points, object_valid, part_points, part_valid, push_
                                                                               object_valid)
         cost = jnp.where(free, jnp.linalg.norm(points - part_centre, axis=-1) + HAND_BLOCKED_COST * blocked, jnp.inf)
         push_at, push_ok = pushing_module.push_point(part_points, part_valid, object_points, object_valid, -side)
-        point = jnp.where(pushing, push_at, points[jnp.argmin(cost)])
+        best = jnp.argmin(cost)
+        point = jnp.where(pushing, push_at, points[best])
         # (A push point's touches keep their order: the box is loose, and a bucket's push point under its rim was
         # touched with the steeper hand after the flatter one missed.)
-        hand_blocked = ~pushing & blocked[jnp.argmin(cost)]
+        hand_blocked = ~pushing & blocked[best]
         reachable = jnp.where(pushing, push_ok, free.any())
         # Side touches keep the closed fingers off the table (a push point is high enough for a tilted hand); a top
         # touch reaches any part from above.
-        above_table = (is_top | (pushing & (tilt > 0))
-                       | (_touch_high_enough(point[2]) & ((point[2] > LOW_TOUCH_HEIGHT) | (tilt > 0))))
+        above_table = is_top | (pushing & (tilt > 0)) | _side_touch_clears_table(point[2], tilt)
         # The top side has one pose; its tilted copies are dropped.
         above_table = above_table & ~(is_top & (tilt > 0))
         alignment = (part_centre - object_centre) @ side
@@ -388,9 +388,10 @@ def touch_candidates(object_points, object_valid, part_points, part_valid, push_
     return jax.vmap(one)(sides, tilts)
 
 
-def _touch_high_enough(height):
-    """Whether a side touch at world `height` keeps the closed fingertips off the table."""
-    return height > TABLE_HEIGHT + MIN_TOUCH_HEIGHT
+def _side_touch_clears_table(height, tilt):
+    """Whether a side touch at world `height` with the hand tilted down by `tilt` keeps the closed fingertips
+    (MIN_TOUCH_HEIGHT) and, for a level hand, the hand (LOW_TOUCH_HEIGHT) off the table."""
+    return (height > TABLE_HEIGHT + MIN_TOUCH_HEIGHT) & ((height > LOW_TOUCH_HEIGHT) | (tilt > 0))
 
 
 def touch_hand_blocked(point, z_axis, object_points, object_valid):

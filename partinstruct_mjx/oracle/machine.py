@@ -598,9 +598,10 @@ def _push_pose(point, direction, tilt):
 def over_to(via, tcp, object_top):
     """The goal on the way to a grasp's or touch's via point: first above it, with the TCP FINGERTIP_OFFSET +
     DETOUR_CLEARANCE over the object's top (straight up first from a TCP less than FINGERTIP_OFFSET above the top,
-    where the fingers may reach down beside it), then down to it once the TCP is over it. A straight line to a via point on the far side of a tall object swept the hand through it (a display knocked
-    over on the way to its front), and so did a line rising across it from a low start (a display's touch backing
-    off from one side and going to the other)."""
+    where the fingers may reach down beside it), then down to it once the TCP is over it. A straight line to a via
+    point on the far side of a tall object swept the hand through it (a display knocked over on the way to its
+    front), and so did a line rising across it from a low start (a display's touch backing off from one side and
+    going to the other)."""
     clear = object_top + predicates.FINGERTIP_OFFSET + DETOUR_CLEARANCE
     over = via.at[2].set(jnp.maximum(via[2], clear))
     rise = tcp.at[2].set(over[2])
