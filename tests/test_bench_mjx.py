@@ -188,4 +188,4 @@ def test_warp_only_run_writes_its_own_section(tmp_path):
                  str(report)]) == 0
     text = report.read_text()
     assert "<!-- bench:mjx_cpu_warp -->" in text and "## MJX env steps (impl warp, CPU)" in text
-    assert "| mug_000 | warp | 10 | - | 4,096 | not installed" in text and "| jax |" not in text
+    assert "| mug_000 | warp | 13 | - | 4,096 | not installed" in text and "| jax |" not in text

@@ -23,7 +23,7 @@ from tqdm import tqdm
 
 from partinstruct_mjx.assets.catalog import update_catalog
 from partinstruct_mjx.assets.decompose import (CONVERTER_VERSION, DecompositionConfig, HullCache, decompose,
-                                               decomposition_key, hull_budgets)
+                                               decomposition_key, hull_budgets, single_hull_gap)
 from partinstruct_mjx.assets.geometry import AssembledObject, assemble
 from partinstruct_mjx.assets.mjcf import MJCF_VERSION, PhysicsConfig, write_mjcf
 from partinstruct_mjx.assets.partnet import PartNetObject, category_slug, is_semantic_label, read_partnet_object
@@ -162,7 +162,8 @@ def _prepare(record: ConversionRecord, out_root: Path, config: ConvertConfig) ->
             return None
         assembled = assemble(obj, config.scale, config.target_size, config.rigid)
         areas = [trimesh.Trimesh(p.vertices, p.faces, process=False).area for p in assembled.collision]
-        budgets = hull_budgets(areas, config.decomposition)
+        gaps = [single_hull_gap(p.vertices, p.faces) for p in assembled.collision]
+        budgets = hull_budgets(areas, config.decomposition, gaps)
         keys = [decomposition_key(p.vertices, p.faces, b, config.decomposition)
                 for p, b in zip(assembled.collision, budgets)]
     except AssetError as err:

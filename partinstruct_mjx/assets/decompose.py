@@ -18,8 +18,20 @@ import trimesh
 from partinstruct_mjx.atomic import atomic_write
 from partinstruct_mjx.errors import AssetError
 
-CONVERTER_VERSION = "4"
-"""Bumped whenever a change alters the decomposition output for the same input."""
+CONVERTER_VERSION = "5"
+"""Bumped whenever a change alters the converter's hulls for the same source object (the budgets' rule included)."""
+
+DECOMPOSITION_VERSION = "4"
+"""Bumped whenever `decompose` changes its hulls for the same mesh, budget and settings (the part cache's key)."""
+
+CONCAVE_GAP = 0.006
+"""A part whose single convex hull lies farther than this (m, the 95th percentile over the hull's surface) from the
+part's own surface is concave: one hull would fill what it encloses (the arc of a handle, the loop of a bucket's
+bail) and fingers closing on the part would meet that phantom solid instead."""
+
+CONCAVE_PART_HULLS = 6
+"""Hulls a concave part may take from the object's spare budget; CoACD stops at fewer where they fit (a kettle's
+handle: 4 hulls, 3.5 mm)."""
 
 MIN_THICKNESS = 1e-3
 """Flat hulls (e.g. a single quad) are thickened to this many metres so MuJoCo can compute their volume."""
@@ -62,8 +74,11 @@ class DecompositionConfig:
         return presets[name]()
 
 
-def hull_budgets(areas: list[float], config: DecompositionConfig) -> list[int]:
-    """Hulls allowed per part: proportional to surface area, at least one, within both budgets."""
+def hull_budgets(areas: list[float], config: DecompositionConfig, gaps: list[float] | None = None) -> list[int]:
+    """Hulls allowed per part: proportional to surface area, at least one, within both budgets. A part left with one
+    hull is not decomposed at all; where that hull strays more than CONCAVE_GAP from the part's surface (`gaps`,
+    `single_hull_gap`) the object's spare hulls go to it instead, one at a time, widest gap first, up to
+    CONCAVE_PART_HULLS each."""
     if len(areas) > config.max_hulls_per_object:
         raise AssetError(f"{len(areas)} collision parts exceed the budget of {config.max_hulls_per_object} hulls "
                          f"per object")
@@ -71,7 +86,44 @@ def hull_budgets(areas: list[float], config: DecompositionConfig) -> list[int]:
     budgets = np.clip(np.floor(share * config.max_hulls_per_object), 1, config.max_hulls_per_part).astype(int)
     while budgets.sum() > config.max_hulls_per_object:
         budgets[np.argmax(budgets)] -= 1
+    if gaps:
+        cap = min(CONCAVE_PART_HULLS, config.max_hulls_per_part)
+        concave = [i for i in np.argsort(-np.asarray(gaps), kind="stable") if budgets[i] == 1 and gaps[i] > CONCAVE_GAP]
+        while True:
+            wanting = [i for i in concave if budgets[i] < cap]
+            spare = config.max_hulls_per_object - int(budgets.sum())
+            if not wanting or spare <= 0:
+                break
+            for i in wanting[:spare]:
+                budgets[i] += 1
     return budgets.tolist()
+
+
+def single_hull_gap(vertices: np.ndarray, faces: np.ndarray, samples: int = 2000) -> float:
+    """How far (m) a part's convex hull strays from the part's surface: the 95th percentile, over points spread
+    evenly on the hull's surface, of the distance to the nearest of 4x as many points on the part's own surface."""
+    from scipy.spatial import cKDTree
+
+    part = trimesh.Trimesh(vertices, faces, process=False)
+    if part.area <= 0:
+        return 0.0
+    rng = np.random.default_rng(0)
+    hull = trimesh.convex.convex_hull(_thicken(np.unique(np.asarray(vertices, float), axis=0)))
+    on_part = _surface_points(part, 4 * samples, rng)
+    distances, _ = cKDTree(on_part).query(_surface_points(hull, samples, rng))
+    return float(np.percentile(distances, 95))
+
+
+def _surface_points(mesh: trimesh.Trimesh, count: int, rng: np.random.Generator) -> np.ndarray:
+    """`count` points spread over `mesh`'s triangles by area, reproducibly from `rng`."""
+    triangles = mesh.triangles
+    area = mesh.area_faces
+    chosen = rng.choice(len(triangles), count, p=area / area.sum())
+    u, v = rng.random((2, count))
+    flip = u + v > 1
+    u, v = np.where(flip, 1 - u, u), np.where(flip, 1 - v, v)
+    a, b, c = triangles[chosen, 0], triangles[chosen, 1], triangles[chosen, 2]
+    return a + u[:, None] * (b - a) + v[:, None] * (c - a)
 
 
 def decomposition_key(vertices: np.ndarray, faces: np.ndarray, budget: int, config: DecompositionConfig) -> str:
@@ -79,7 +131,7 @@ def decomposition_key(vertices: np.ndarray, faces: np.ndarray, budget: int, conf
     digest = hashlib.sha256()
     digest.update(np.ascontiguousarray(vertices, dtype=np.float64).tobytes())
     digest.update(np.ascontiguousarray(faces, dtype=np.int64).tobytes())
-    digest.update(json.dumps([CONVERTER_VERSION, budget, dataclasses.asdict(config)], sort_keys=True).encode())
+    digest.update(json.dumps([DECOMPOSITION_VERSION, budget, dataclasses.asdict(config)], sort_keys=True).encode())
     return digest.hexdigest()
 
 
