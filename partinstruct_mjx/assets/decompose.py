@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
+from partinstruct_mjx.assets.surface import area_samples
 from partinstruct_mjx.atomic import atomic_write
 from partinstruct_mjx.errors import AssetError
 
@@ -109,21 +110,10 @@ def single_hull_gap(vertices: np.ndarray, faces: np.ndarray, samples: int = 2000
         return 0.0
     rng = np.random.default_rng(0)
     hull = trimesh.convex.convex_hull(_thicken(np.unique(np.asarray(vertices, float), axis=0)))
-    on_part = _surface_points(part, 4 * samples, rng)
-    distances, _ = cKDTree(on_part).query(_surface_points(hull, samples, rng))
+    on_part, _ = area_samples(part.triangles, 4 * samples, rng)
+    on_hull, _ = area_samples(hull.triangles, samples, rng)
+    distances, _ = cKDTree(on_part).query(on_hull)
     return float(np.percentile(distances, 95))
-
-
-def _surface_points(mesh: trimesh.Trimesh, count: int, rng: np.random.Generator) -> np.ndarray:
-    """`count` points spread over `mesh`'s triangles by area, reproducibly from `rng`."""
-    triangles = mesh.triangles
-    area = mesh.area_faces
-    chosen = rng.choice(len(triangles), count, p=area / area.sum())
-    u, v = rng.random((2, count))
-    flip = u + v > 1
-    u, v = np.where(flip, 1 - u, u), np.where(flip, 1 - v, v)
-    a, b, c = triangles[chosen, 0], triangles[chosen, 1], triangles[chosen, 2]
-    return a + u[:, None] * (b - a) + v[:, None] * (c - a)
 
 
 def decomposition_key(vertices: np.ndarray, faces: np.ndarray, budget: int, config: DecompositionConfig) -> str:

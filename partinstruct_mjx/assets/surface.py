@@ -41,14 +41,23 @@ def sample_parts(obj: AssembledObject, points_per_part: int, object_points: int,
     }
 
 
-def _sample(pieces: list[MeshPiece], body_names: list[str], count: int, rng: np.random.Generator):
-    triangles = np.concatenate([p.vertices[p.faces] for p in pieces])
-    bodies = np.concatenate([np.full(len(p.faces), body_names.index(p.body)) for p in pieces])
+def area_samples(triangles: np.ndarray, count: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """`count` points spread uniformly over `triangles` (T, 3, 3), reproducibly from `rng`, and each point's
+    triangle index."""
     cross = np.cross(triangles[:, 1] - triangles[:, 0], triangles[:, 2] - triangles[:, 0])
     areas = 0.5 * np.linalg.norm(cross, axis=1)
     chosen = rng.choice(len(triangles), size=count, p=areas / areas.sum())
     r1, r2 = np.sqrt(rng.random(count)), rng.random(count)
     t = triangles[chosen]
     points = (1 - r1)[:, None] * t[:, 0] + (r1 * (1 - r2))[:, None] * t[:, 1] + (r1 * r2)[:, None] * t[:, 2]
-    normals = cross[chosen] / np.maximum(np.linalg.norm(cross[chosen], axis=1, keepdims=True), 1e-12)
+    return points, chosen
+
+
+def _sample(pieces: list[MeshPiece], body_names: list[str], count: int, rng: np.random.Generator):
+    triangles = np.concatenate([p.vertices[p.faces] for p in pieces])
+    bodies = np.concatenate([np.full(len(p.faces), body_names.index(p.body)) for p in pieces])
+    points, chosen = area_samples(triangles, count, rng)
+    t = triangles[chosen]
+    cross = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
+    normals = cross / np.maximum(np.linalg.norm(cross, axis=1, keepdims=True), 1e-12)
     return points, normals, bodies[chosen]
