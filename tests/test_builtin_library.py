@@ -9,7 +9,9 @@ import trimesh
 from partinstruct_mjx import paths
 from partinstruct_mjx.assets.catalog import load_catalog
 from partinstruct_mjx.assets.decompose import (CONCAVE_GAP, CONCAVE_PART_HULLS, DecompositionConfig, hull_budgets,
-                                               single_hull_gap)
+                                               separate_sources, single_hull_gap)
+from partinstruct_mjx.assets.geometry import MeshPiece, assemble
+from partinstruct_mjx.assets.partnet import read_partnet_object
 from partinstruct_mjx.assets.naming import COLLISION_TAG, parse_geom_name
 from partinstruct_mjx.assets.procedural import build_object, write_partnet
 from partinstruct_mjx.assets.splits import HELD_OUT_CATEGORIES
@@ -159,6 +161,46 @@ def test_a_concave_part_gets_the_spare_hulls_a_convex_one_does_not():
     assert hull_budgets(areas, config) == [8, 1, 1]
     assert hull_budgets(areas, config, gaps) == [8, CONCAVE_PART_HULLS, 1]
     assert sum(hull_budgets([1.0] * 12 + [0.01] * 4, config, [0.0] * 12 + [0.05] * 4)) == 16
+
+
+def _pieces(*meshes: trimesh.Trimesh) -> MeshPiece:
+    """One part made of `meshes` as separate source meshes, concatenated as `assemble` does."""
+    merged = trimesh.util.concatenate(list(meshes))
+    return MeshPiece("base", "frame", np.asarray(merged.vertices), np.asarray(merged.faces),
+                     source_sizes=tuple((len(m.vertices), len(m.faces)) for m in meshes))
+
+
+def test_a_part_of_convex_sources_that_is_concave_together_is_decomposed_per_source():
+    """A housing with a bulge on its back (two boxes, as a monitor's frame) is concave together: one hull or a
+    CoACD run held to its budget fills the step between them. It is split into its two sources, which concatenated
+    give the part back; a part whose one hull fits (two boxes side by side), or whose sources are themselves concave,
+    or that would exceed the unit budget, is left whole."""
+    housing = trimesh.creation.box([0.02, 0.25, 0.15])
+    bulge = trimesh.creation.box([0.02, 0.12, 0.08])
+    bulge.apply_translation([0.02, 0.0, 0.0])
+    side_by_side = trimesh.creation.box([0.02, 0.25, 0.15])
+    side_by_side.apply_translation([0.0, 0.25, 0.0])
+    ring = trimesh.creation.torus(major_radius=0.04, minor_radius=0.006)
+    stepped, flat, hooped = _pieces(housing, bulge), _pieces(housing, side_by_side), _pieces(housing, ring)
+    gaps = [single_hull_gap(p.vertices, p.faces) for p in (stepped, flat, hooped)]
+    assert gaps[0] > CONCAVE_GAP >= gaps[1] and gaps[2] > CONCAVE_GAP
+    units, unit_gaps = separate_sources([stepped, flat, hooped], gaps, max_units=16)
+    assert len(units) == 4 and max(unit_gaps[:2]) <= CONCAVE_GAP and unit_gaps[2:] == gaps[1:]
+    assert np.array_equal(np.concatenate([units[0].vertices, units[1].vertices]), stepped.vertices)
+    assert np.array_equal(np.concatenate([units[0].faces, units[1].faces + len(units[0].vertices)]), stepped.faces)
+    assert len(separate_sources([stepped, flat, hooped], gaps, max_units=3)[0]) == 3
+
+
+def test_a_kettles_spout_is_decomposed_apart_from_its_belly(tmp_path):
+    """The generated kettles' base body is a belly and a spout (two source meshes); the converter decomposes them
+    apart, so no hull spans the gap between the spout and the belly (kettle_007: 33 mm from the surface)."""
+    folder = write_partnet(build_object("kettle", 7, seed=0), tmp_path / "kettle_007")
+    collision = assemble(read_partnet_object(folder), 1.0, None, False).collision
+    gaps = [single_hull_gap(p.vertices, p.faces) for p in collision]
+    body = [i for i, p in enumerate(collision) if p.part == "base body"]
+    assert len(body) == 1 and len(collision[body[0]].sources()) == 2 and gaps[body[0]] > 3 * CONCAVE_GAP
+    units, _ = separate_sources(collision, gaps, max_units=16)
+    assert [u.part for u in units].count("base body") == 2
 
 
 def test_no_concave_part_is_left_undecomposed():

@@ -23,7 +23,8 @@ from tqdm import tqdm
 
 from partinstruct_mjx.assets.catalog import update_catalog
 from partinstruct_mjx.assets.decompose import (CONVERTER_VERSION, DecompositionConfig, HullCache, decompose,
-                                               decomposition_key, hull_budgets, single_hull_gap)
+                                               decomposition_key, hull_budgets, separate_sources,
+                                               single_hull_gap)
 from partinstruct_mjx.assets.geometry import AssembledObject, assemble
 from partinstruct_mjx.assets.mjcf import MJCF_VERSION, PhysicsConfig, write_mjcf
 from partinstruct_mjx.assets.partnet import PartNetObject, category_slug, is_semantic_label, read_partnet_object
@@ -161,8 +162,10 @@ def _prepare(record: ConversionRecord, out_root: Path, config: ConvertConfig) ->
             update_catalog(out_root, [_catalog_entry(previous)])
             return None
         assembled = assemble(obj, config.scale, config.target_size, config.rigid)
-        areas = [trimesh.Trimesh(p.vertices, p.faces, process=False).area for p in assembled.collision]
         gaps = [single_hull_gap(p.vertices, p.faces) for p in assembled.collision]
+        units, gaps = separate_sources(assembled.collision, gaps, config.decomposition.max_hulls_per_object)
+        assembled = dataclasses.replace(assembled, collision=units)
+        areas = [trimesh.Trimesh(p.vertices, p.faces, process=False).area for p in assembled.collision]
         budgets = hull_budgets(areas, config.decomposition, gaps)
         keys = [decomposition_key(p.vertices, p.faces, b, config.decomposition)
                 for p, b in zip(assembled.collision, budgets)]

@@ -15,11 +15,12 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
+from partinstruct_mjx.assets.geometry import MeshPiece
 from partinstruct_mjx.assets.surface import area_samples
 from partinstruct_mjx.atomic import atomic_write
 from partinstruct_mjx.errors import AssetError
 
-CONVERTER_VERSION = "5"
+CONVERTER_VERSION = "6"
 """Bumped whenever a change alters the converter's hulls for the same source object (the budgets' rule included)."""
 
 DECOMPOSITION_VERSION = "4"
@@ -98,6 +99,26 @@ def hull_budgets(areas: list[float], config: DecompositionConfig, gaps: list[flo
             for i in wanting[:spare]:
                 budgets[i] += 1
     return budgets.tolist()
+
+
+def separate_sources(pieces: list[MeshPiece], gaps: list[float], max_units: int) -> tuple[list[MeshPiece], list[float]]:
+    """Collision units to decompose, and their `single_hull_gap`s: `pieces`, except that a part whose one hull strays
+    more than CONCAVE_GAP from its surface while each of its source meshes fits one hull (a kettle's body and its
+    spout, a monitor's housing and the bulge on its back, a pot lid's dome and knob) becomes one unit per source mesh,
+    widest gap first while the units fit `max_units`. Decomposed whole, CoACD (held to the part's budget) merged hulls
+    across the sources and filled what lies between them: a wedge 3 cm deep from a kettle's belly to its spout tip."""
+    units: list[list[MeshPiece]] = [[piece] for piece in pieces]
+    unit_gaps: list[list[float]] = [[gap] for gap in gaps]
+    count = len(pieces)
+    for i in np.argsort(-np.asarray(gaps, dtype=float), kind="stable"):
+        sources = pieces[i].sources()
+        if gaps[i] <= CONCAVE_GAP or len(sources) < 2 or count + len(sources) - 1 > max_units:
+            continue
+        source_gaps = [single_hull_gap(s.vertices, s.faces) for s in sources]
+        if max(source_gaps) <= CONCAVE_GAP:
+            units[i], unit_gaps[i] = sources, source_gaps
+            count += len(sources) - 1
+    return [u for group in units for u in group], [g for group in unit_gaps for g in group]
 
 
 def single_hull_gap(vertices: np.ndarray, faces: np.ndarray, samples: int = 2000) -> float:

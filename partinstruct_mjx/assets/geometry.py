@@ -52,13 +52,26 @@ class MeshPiece:
     faces: np.ndarray
     uv: np.ndarray | None = None
     material: str = ""
+    source_sizes: tuple[tuple[int, int], ...] = ()
+    """(vertices, faces) of each source mesh (OBJ file) concatenated into this piece, in order."""
+
+    def sources(self) -> list[MeshPiece]:
+        """The piece's source meshes as pieces of their own, in order (concatenated, they give this piece back)."""
+        pieces, vertex_start, face_start = [], 0, 0
+        for vertex_count, face_count in self.source_sizes:
+            faces = self.faces[face_start:face_start + face_count] - vertex_start
+            pieces.append(MeshPiece(self.body, self.part, self.vertices[vertex_start:vertex_start + vertex_count],
+                                    faces, material=self.material, source_sizes=((vertex_count, face_count),)))
+            vertex_start, face_start = vertex_start + vertex_count, face_start + face_count
+        return pieces
 
 
 @dataclass
 class AssembledObject:
     bodies: list[BodySpec]
     collision: list[MeshPiece]
-    """One mesh per (body, part): the part's geometry to decompose and sample."""
+    """One mesh per (body, part): the part's geometry to decompose and sample (the converter may split a part into
+    its source meshes, `decompose.separate_sources`)."""
     visual: list[MeshPiece]
     """One mesh per (body, part, material)."""
     materials: dict[str, Material] = field(default_factory=dict)
@@ -81,9 +94,13 @@ def assemble(obj: PartNetObject, scale: float | None, target_size: float | None,
                                    (body.joint.range[0] * scale, body.joint.range[1] * scale))
     materials: dict[str, Material] = {}
     collision: dict[tuple[str, str], list[tuple[np.ndarray, np.ndarray]]] = {}
+    source_sizes: dict[tuple[str, str], list[tuple[int, int]]] = {}
     visual: dict[tuple[str, str, str], list[tuple[np.ndarray, np.ndarray, np.ndarray | None]]] = {}
     for body, transform, source, meshes in loaded:
         part = obj.mesh_labels[source.stem]
+        if meshes:
+            source_sizes.setdefault((body, part), []).append(
+                (sum(len(m.vertices) for m in meshes), sum(len(m.faces) for m in meshes)))
         for mesh in meshes:
             vertices = _apply(transform, mesh.vertices * source.scale) * scale
             collision.setdefault((body, part), []).append((vertices, mesh.faces))
@@ -92,7 +109,8 @@ def assemble(obj: PartNetObject, scale: float | None, target_size: float | None,
             visual.setdefault((body, part, key), []).append((vertices, mesh.faces, uv))
     return AssembledObject(
         bodies=bodies,
-        collision=[MeshPiece(b, p, *_concatenate(items)[:2]) for (b, p), items in collision.items()],
+        collision=[MeshPiece(b, p, *_concatenate(items)[:2], source_sizes=tuple(source_sizes[(b, p)]))
+                   for (b, p), items in collision.items()],
         visual=[MeshPiece(b, p, *_concatenate(items), material=m) for (b, p, m), items in visual.items()],
         materials=materials,
         scale=float(scale),
