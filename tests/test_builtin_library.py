@@ -8,11 +8,13 @@ import trimesh
 
 from partinstruct_mjx import paths
 from partinstruct_mjx.assets.catalog import load_catalog
+from partinstruct_mjx.assets.builtin_library import builtin_convert_config
+from partinstruct_mjx.assets.convert import convert_objects
 from partinstruct_mjx.assets.decompose import (CONCAVE_GAP, CONCAVE_PART_HULLS, DecompositionConfig, hull_budgets,
                                                separate_sources, single_hull_gap)
 from partinstruct_mjx.assets.geometry import MeshPiece, assemble
-from partinstruct_mjx.assets.partnet import read_partnet_object
 from partinstruct_mjx.assets.naming import COLLISION_TAG, parse_geom_name
+from partinstruct_mjx.assets.partnet import read_partnet_object
 from partinstruct_mjx.assets.procedural import build_object, write_partnet
 from partinstruct_mjx.assets.splits import HELD_OUT_CATEGORIES
 from partinstruct_mjx.sim import panda
@@ -201,6 +203,17 @@ def test_a_kettles_spout_is_decomposed_apart_from_its_belly(tmp_path):
     assert len(body) == 1 and len(collision[body[0]].sources()) == 2 and gaps[body[0]] > 3 * CONCAVE_GAP
     units, _ = separate_sources(collision, gaps, max_units=16)
     assert [u.part for u in units].count("base body") == 2
+    # Converted, every base-body hull lies within one of the two sources' bounds: none spans belly and spout.
+    belly, spout = collision[body[0]].sources()
+    config = builtin_convert_config("fast", workers=1, cache_dir=str(tmp_path / "cache"))
+    (record,) = convert_objects([folder], tmp_path / "out", config, progress=False)
+    assert record.status == "converted", record.reason
+    hulls = sorted((record.output / "meshes").glob(f"{COLLISION_TAG}_base_body_*.stl"))
+    assert len(hulls) >= 2
+    for path in hulls:
+        vertices = trimesh.load(path, force="mesh").vertices
+        assert any(np.all((vertices >= source.vertices.min(0) - 0.002) & (vertices <= source.vertices.max(0) + 0.002))
+                   for source in (belly, spout)), path.name
 
 
 def test_no_concave_part_is_left_undecomposed():

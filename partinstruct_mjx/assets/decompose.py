@@ -111,8 +111,10 @@ def separate_sources(pieces: list[MeshPiece], gaps: list[float], max_units: int)
     unit_gaps: list[list[float]] = [[gap] for gap in gaps]
     count = len(pieces)
     for i in np.argsort(-np.asarray(gaps, dtype=float), kind="stable"):
+        if gaps[i] <= CONCAVE_GAP:
+            break
         sources = pieces[i].sources()
-        if gaps[i] <= CONCAVE_GAP or len(sources) < 2 or count + len(sources) - 1 > max_units:
+        if len(sources) < 2 or count + len(sources) - 1 > max_units:
             continue
         source_gaps = [single_hull_gap(s.vertices, s.faces) for s in sources]
         if max(source_gaps) <= CONCAVE_GAP:
