@@ -84,7 +84,7 @@ def test_touch_before_a_push_comes_from_behind_first(episodes):
         state = env.reset(jax.random.PRNGKey(0), [episode])
         points, _, valid, part_points, _, part_valid = _clouds(env, state, episode.chain[0].part)
         side = -direction_vector(push).astype(np.float32)
-        _, axis, score = candidates.touch_candidates(points, valid, part_points, part_valid, jnp.asarray(side))
+        _, axis, _, score = candidates.touch_candidates(points, valid, part_points, part_valid, jnp.asarray(side))
     score = np.asarray(score)
     usable = np.isfinite(score)
     assert usable.any()
@@ -113,7 +113,7 @@ def test_a_keyboard_under_an_open_lid_is_touched_from_above(episodes):
     with _env(episode) as env:
         state = env.reset(jax.random.PRNGKey(0), [episode])
         points, _, valid, part_points, _, part_valid = _clouds(env, state, "keyboard")
-        point, axis, score = candidates.touch_candidates(points, valid, part_points, part_valid, jnp.zeros(3))
+        point, axis, _, score = candidates.touch_candidates(points, valid, part_points, part_valid, jnp.zeros(3))
     top = int(np.argmax(np.asarray(axis)[:, 2] < -0.99))
     assert np.isfinite(float(score[top]))
     point, points = np.asarray(point[top]), np.asarray(points)[np.asarray(valid)]
@@ -533,9 +533,10 @@ def test_a_touchs_hand_comes_in_clear_of_the_object():
     tilted = jnp.array([-np.cos(0.8), 0.0, -np.sin(0.8)], jnp.float32)  # coming down from +x along the screen
     assert bool(candidates.clear_rays(point[None], -tilted, screen, valid)[0])
     # The hand, 23 cm wide along the closing axis (y), meets the screen's upper part behind the fingertip ...
-    assert bool(candidates.touch_hand_blocked(point, tilted, screen, valid))
+    assert bool(candidates.touch_hand_blocked(point, tilted, candidates.TOP_X, screen, valid))
     # ... but not when it comes level from the screen's free side (-y).
-    assert not bool(candidates.touch_hand_blocked(point, jnp.array([0.0, 1.0, 0.0]), screen, valid))
+    assert not bool(candidates.touch_hand_blocked(point, jnp.array([0.0, 1.0, 0.0]), candidates.TOP_X, screen,
+                                                  valid))
 
 
 def test_a_low_plate_does_not_hide_a_higher_face_from_a_side_touch():
@@ -547,7 +548,8 @@ def test_a_low_plate_does_not_hide_a_higher_face_from_a_side_touch():
     points = np.concatenate([screen, plate])
     valid = np.ones(len(points), bool)
     part = points[:, 1] < 0.045
-    point, axis, score = candidates.touch_candidates(*map(jnp.asarray, (points, valid, points, part)), jnp.zeros(3))
+    point, axis, _, score = candidates.touch_candidates(*map(jnp.asarray, (points, valid, points, part)),
+                                                      jnp.zeros(3))
     # Side 'right' (the fingertip comes from -y, moving +y), level: the plate is too low to touch, the screen's face
     # at y = 0.03 is not.
     right = 1 * len(candidates.TOUCH_TILTS)
@@ -1075,3 +1077,23 @@ def test_a_push_approach_times_out_only_near_the_push_point_and_stops_once_pushe
     assert not bool(machine.push_approached(False, late, above, push_point, False))
     # The hand pushed the object far enough on the way (no finger contact): the approach stops.
     assert bool(machine.push_approached(False, 5, above, push_point, True))
+
+
+def test_a_top_touch_beside_a_standing_lid_turns_the_hand_along_it():
+    # A flat plate (a keyboard) with a lid standing 5-6 cm beside it along x: the unturned top-down hand, 23 cm wide
+    # along its closing axis (y), would meet the lid; the hand turned a quarter about the vertical comes down beside
+    # it and ranks first of the top touches.
+    plate = _wall(np.linspace(-0.05, 0.05, 21), np.linspace(-0.03, 0.03, 13), [TABLE_HEIGHT + 0.02])
+    lid = _wall(np.linspace(-0.1, 0.1, 41), np.linspace(0.05, 0.06, 3), np.linspace(TABLE_HEIGHT + 0.02,
+                                                                                    TABLE_HEIGHT + 0.22, 41))
+    points = np.concatenate([plate, lid])
+    valid, part = np.ones(len(points), bool), np.arange(len(points)) < len(plate)
+    point, axis, x_axis, score = candidates.touch_candidates(*map(jnp.asarray, (points, valid, points, part)),
+                                                             jnp.zeros(3))
+    top = np.flatnonzero(np.asarray(axis)[:, 2] < -0.99)
+    assert len(top) == len(candidates.TOP_TOUCH_YAWS)
+    best = top[np.argmax(np.asarray(score)[top])]
+    assert abs(float(x_axis[best][1])) > 0.99  # turned: the closing axis runs along the lid
+    unturned = top[np.abs(np.asarray(x_axis)[top][:, 0]) > 0.99][0]
+    assert bool(candidates.touch_hand_blocked(point[unturned], axis[unturned], x_axis[unturned], points, valid))
+    assert not bool(candidates.touch_hand_blocked(point[best], axis[best], x_axis[best], points, valid))

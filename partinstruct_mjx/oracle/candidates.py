@@ -321,6 +321,10 @@ TOUCH_SIDES = np.array([[0.0, 1.0, 0.0], [0.0, -1.0, 0.0], [-1.0, 0.0, 0.0], [1.
 TOUCH_TILTS = (0.0, 0.8, 1.2)
 """Radians the hand is tilted down from horizontal for a side touch: the far (front) side is out of the arm's reach
 with a level hand, and low points need the tilt to keep the hand off the table."""
+TOP_TOUCH_YAWS = (0.0, 0.5 * np.pi, -0.5 * np.pi)
+"""Turns (rad) of the hand about the vertical for a top touch, one in each of TOUCH_TILTS' slots: the closed hand is
+23 cm wide along the fingers' closing axis, and coming down on a laptop's keyboard across its open lid it met the
+lid; turned a quarter, it comes down beside it."""
 TOUCH_DEPTH = 0.004
 """How far past the touch point the fingertip is aimed (the touch skill stops as soon as TOUCHING holds)."""
 TOUCH_POINTS = 256
@@ -340,8 +344,13 @@ on its way in: a hand tilted down onto a display's 'right' met the screen's top 
 before the fingertip got there. Such touches still rank after the clear ones (the part may have no other)."""
 
 
+TOP_X = np.array([-1.0, 0.0, 0.0], np.float32)
+"""The TCP's x axis for a top-down touch, unturned (spec 8.5)."""
+
+
 def touch_candidates(object_points, object_valid, part_points, part_valid, push_side):
-    """Fingertip targets per side and tilt: point (N, 3), tcp z axis (N, 3), score (N,), -inf where not usable.
+    """Fingertip targets per side and tilt (for the top: per TOP_TOUCH_YAWS): point (N, 3), tcp z axis (N, 3), tcp x
+    axis (N, 3), score (N,), -inf where not usable.
 
     push_side (3,): the side a following push comes from (zero when no push follows); it ranks first.
     """
@@ -350,9 +359,10 @@ def touch_candidates(object_points, object_valid, part_points, part_valid, push_
     stride = max(1, part_points.shape[0] // TOUCH_POINTS)
     points, valid = part_points[::stride], part_valid[::stride]
 
-    def one(side, tilt):
+    def one(side, tilt, yaw):
         is_top = side[2] > 0.5
         z_axis = jnp.where(is_top, -side, -jnp.cos(tilt) * side - jnp.sin(tilt) * jnp.array([0.0, 0.0, 1.0]))
+        top_x = jnp.stack([-jnp.cos(yaw), -jnp.sin(yaw), 0.0])
         # Points the fingertip can come to along its axis without the object in the way, high enough for the hand
         # (below); of those, the ones within pushing.FACE_BAND of the farthest out towards the side (the part's face
         # on that side, or what is open of it): a display's stand plate, low and farthest out, hid its screen's side.
@@ -363,8 +373,8 @@ def touch_candidates(object_points, object_valid, part_points, part_valid, push_
         # the face towards the pusher); other touches take the free point nearest the part's centre, of those whose
         # hand comes in clear of the object first.
         pushing = (side @ push_side) > 0.5
-        blocked = jax.vmap(touch_hand_blocked, in_axes=(0, None, None, None))(points, z_axis, object_points,
-                                                                              object_valid)
+        blocked = jax.vmap(touch_hand_blocked, in_axes=(0, None, None, None, None))(points, z_axis, top_x,
+                                                                                    object_points, object_valid)
         cost = jnp.where(free, jnp.linalg.norm(points - part_centre, axis=-1) + HAND_BLOCKED_COST * blocked, jnp.inf)
         push_at, push_ok = pushing_module.push_point(part_points, part_valid, object_points, object_valid, -side)
         best = jnp.argmin(cost)
@@ -376,16 +386,18 @@ def touch_candidates(object_points, object_valid, part_points, part_valid, push_
         # Side touches keep the closed fingers off the table (a push point is high enough for a tilted hand); a top
         # touch reaches any part from above.
         above_table = is_top | (pushing & (tilt > 0)) | _side_touch_clears_table(point[2], tilt)
-        # The top side has one pose; its tilted copies are dropped.
-        above_table = above_table & ~(is_top & (tilt > 0))
         alignment = (part_centre - object_centre) @ side
         # Before a push the side opposite the push direction comes first (the push can start from there).
-        score = alignment - 0.01 * tilt + jnp.where(pushing, 1.0, 0.0) - jnp.where(hand_blocked, HAND_BLOCKED_COST, 0.0)
-        return point, z_axis, jnp.where(reachable & above_table, score, -jnp.inf)
+        # (A top touch's turned hands rank after the unturned one, as tilted hands after level ones.)
+        score = (alignment - 0.01 * (tilt + jnp.abs(yaw)) + jnp.where(pushing, 1.0, 0.0)
+                 - jnp.where(hand_blocked, HAND_BLOCKED_COST, 0.0))
+        return point, z_axis, touch_axes(z_axis, top_x)[0], jnp.where(reachable & above_table, score, -jnp.inf)
 
     sides = jnp.repeat(jnp.asarray(TOUCH_SIDES), len(TOUCH_TILTS), axis=0)
-    tilts = jnp.tile(jnp.asarray(TOUCH_TILTS), TOUCH_SIDES.shape[0])
-    return jax.vmap(one)(sides, tilts)
+    is_top = sides[:, 2] > 0.5
+    tilts = jnp.where(is_top, 0.0, jnp.tile(jnp.asarray(TOUCH_TILTS), TOUCH_SIDES.shape[0]))
+    yaws = jnp.where(is_top, jnp.tile(jnp.asarray(TOP_TOUCH_YAWS), TOUCH_SIDES.shape[0]), 0.0)
+    return jax.vmap(one)(sides, tilts, yaws)
 
 
 def _side_touch_clears_table(height, tilt):
@@ -394,11 +406,11 @@ def _side_touch_clears_table(height, tilt):
     return (height > TABLE_HEIGHT + MIN_TOUCH_HEIGHT) & ((height > LOW_TOUCH_HEIGHT) | (tilt > 0))
 
 
-def touch_hand_blocked(point, z_axis, object_points, object_valid):
+def touch_hand_blocked(point, z_axis, top_x, object_points, object_valid):
     """Whether an object point lies in the box the hand (behind the closed fingers: HAND_BACK behind the pads'
     middle, HAND_HALF_WIDTH by HAND_HALF_LENGTH) sweeps on its way in along `z_axis` (from PREGRASP_DISTANCE and more
     back) to the touch pose whose fingertip presses `point` (machine.touch_poses, touch_quat's axes)."""
-    x_axis, y_axis, _ = touch_axes(z_axis)
+    x_axis, y_axis, _ = touch_axes(z_axis, top_x)
     pads = point - (FINGERTIP_OFFSET - TOUCH_DEPTH - PAD_CENTRE) * z_axis
     d = object_points - pads
     t, u, v = dot3(d, z_axis), dot3(d, x_axis), dot3(d, y_axis)
@@ -419,16 +431,16 @@ def clear_rays(points, ray, object_points, object_valid):
     return ~blocked.any(axis=1)
 
 
-def touch_axes(z_axis: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray, jnp.ndarray]:
+def touch_axes(z_axis: jnp.ndarray, top_x=TOP_X) -> tuple[jnp.ndarray, jnp.ndarray, jnp.ndarray]:
     """The TCP's axes (x, y, z) for a touch: z along `z_axis`, x pointing as far down as possible (the spec's
-    side-approach frame) or along -x world for a top-down touch."""
+    side-approach frame) or, for a top-down touch, along the horizontal `top_x` (the spec's: -x world)."""
     down = jnp.array([0.0, 0.0, -1.0])
     x = down - (down @ z_axis) * z_axis
-    x = jnp.where(jnp.linalg.norm(x) < 1e-3, jnp.array([-1.0, 0.0, 0.0]), x)
+    x = jnp.where(jnp.linalg.norm(x) < 1e-3, jnp.asarray(top_x, jnp.float32), x)
     x = x / jnp.linalg.norm(x)
     return x, jnp.cross(z_axis, x), z_axis
 
 
-def touch_quat(z_axis: jnp.ndarray) -> jnp.ndarray:
+def touch_quat(z_axis: jnp.ndarray, top_x=TOP_X) -> jnp.ndarray:
     """TCP orientation for a touch (touch_axes)."""
-    return matrix_to_quat(jnp.stack(touch_axes(z_axis), axis=-1))
+    return matrix_to_quat(jnp.stack(touch_axes(z_axis, top_x), axis=-1))

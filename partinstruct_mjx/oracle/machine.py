@@ -387,11 +387,11 @@ def _plan_touch(o: OracleState, data, geo: PartGeometry, kinematics, q):
     key, _ = jax.random.split(o.key)
     object_points, object_valid = _object_cloud(data, geo)
     part_points, part_valid = predicates.part_cloud(data, geo, o.masks, part)
-    touch_point, touch_axis, touch_score = candidates.touch_candidates(object_points, object_valid, part_points,
-                                                                       part_valid, o.push_side[index])
+    touch_point, touch_axis, touch_x, touch_score = candidates.touch_candidates(
+        object_points, object_valid, part_points, part_valid, o.push_side[index])
     order = jnp.argsort(-touch_score)
     axes = touch_axis[order]
-    positions, quats = touch_poses(touch_point[order], axes)
+    positions, quats = touch_poses(touch_point[order], axes, touch_x[order])
     reached, _ = jax.vmap(servo_reachable, in_axes=(None, None, 0, 0, 0, None))(kinematics, q, positions, quats, axes,
                                                                              _top(object_points, object_valid))
     reachable = jnp.isfinite(touch_score[order]) & reached
@@ -400,10 +400,11 @@ def _plan_touch(o: OracleState, data, geo: PartGeometry, kinematics, q):
                            jnp.zeros(positions.shape[0], int))
 
 
-def touch_poses(points, axes):
+def touch_poses(points, axes, x_axes):
     """TCP positions and orientations (N, 3), (N, 4) that press the fingertip candidates.TOUCH_DEPTH into the
-    surface at `points` along the TCP z axes `axes` (candidates.touch_candidates)."""
-    return points - (predicates.FINGERTIP_OFFSET - candidates.TOUCH_DEPTH) * axes, jax.vmap(candidates.touch_quat)(axes)
+    surface at `points` along the TCP z axes `axes`, x axes `x_axes` (candidates.touch_candidates)."""
+    return (points - (predicates.FINGERTIP_OFFSET - candidates.TOUCH_DEPTH) * axes,
+            jax.vmap(candidates.touch_quat)(axes, x_axes))
 
 
 def _top(points, valid):

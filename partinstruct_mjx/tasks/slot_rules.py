@@ -331,8 +331,9 @@ def _best_grasps_per_key(object_points, object_normals, object_valid, part_point
 @jax.jit
 def _any_touch_reachable(kinematics, object_points, object_valid, part_points, part_valid, push_side):
     """Whether the arm reaches, from home, any usable touch pose on the part (machine._plan_touch's candidates)."""
-    points, axes, score = candidates.touch_candidates(object_points, object_valid, part_points, part_valid, push_side)
-    positions, quats = machine.touch_poses(points, axes)
+    points, axes, x_axes, score = candidates.touch_candidates(object_points, object_valid, part_points, part_valid,
+                                                              push_side)
+    positions, quats = machine.touch_poses(points, axes, x_axes)
     return _any_reached_from_home(kinematics, positions, quats, axes, jnp.isfinite(score))
 
 
