@@ -325,6 +325,8 @@ TOP_TOUCH_YAWS = (0.0, 0.5 * np.pi, -0.5 * np.pi)
 """Turns (rad) of the hand about the vertical for a top touch, one in each of TOUCH_TILTS' slots: the closed hand is
 23 cm wide along the fingers' closing axis, and coming down on a laptop's keyboard across its open lid it met the
 lid; turned a quarter, it comes down beside it."""
+TOP_X = np.array([-1.0, 0.0, 0.0], np.float32)
+"""The TCP's x axis for a top-down touch, unturned (spec 8.5; yaw 0 of TOP_TOUCH_YAWS, turned by `top_x` below)."""
 TOUCH_DEPTH = 0.004
 """How far past the touch point the fingertip is aimed (the touch skill stops as soon as TOUCHING holds)."""
 TOUCH_POINTS = 256
@@ -342,10 +344,6 @@ HAND_BLOCKED_COST = 0.5
 """Score a touch (other than at a push point) loses when the hand (behind the closed fingers) would meet the object
 on its way in: a hand tilted down onto a display's 'right' met the screen's top edge and tipped the display over
 before the fingertip got there. Such touches still rank after the clear ones (the part may have no other)."""
-
-
-TOP_X = np.array([-1.0, 0.0, 0.0], np.float32)
-"""The TCP's x axis for a top-down touch, unturned (spec 8.5)."""
 
 
 def touch_candidates(object_points, object_valid, part_points, part_valid, push_side):
