@@ -19,9 +19,9 @@ from partinstruct_mjx.eval import EvalConfig, EvalError, aggregate, evaluate
 from partinstruct_mjx.eval.compare import mcnemar_p
 from partinstruct_mjx.eval.metrics import mean_se, percent, results_markdown, success_table
 from partinstruct_mjx.eval.planner import OraclePlanner
-from partinstruct_mjx.eval.runner import select_eval_episodes
+from partinstruct_mjx.eval.runner import _run_episodes, select_eval_episodes
 from partinstruct_mjx.paths import assets_root
-from partinstruct_mjx.tasks.episodes import write_metadata
+from partinstruct_mjx.tasks.episodes import read_metadata, write_metadata
 
 MAX_STEPS = 60
 RECORD_FIELDS = {"split": str, "category": str, "obj_id": str, "ep_id": int, "task_type": int, "success": bool,
@@ -195,6 +195,21 @@ def test_rerun_resumes_and_other_settings_are_refused(metadata, run_dir, capsys)
     assert json.loads((run_dir / "results.json").read_text())["episodes"] == before
     assert run(metadata, run_dir, "--seed", "3") == 2
     assert "other settings (seed: 0 there, 3 now)" in capsys.readouterr().err
+
+
+def test_a_run_keeps_its_episodes_and_a_resume_reads_them_back(run_dir, tmp_path):
+    """DIR/episodes.json holds the evaluated episodes (metadata schema). A resumed run of drawn episodes takes them
+    from there, not from a new draw (which another machine or a code change could make differ); a new run draws
+    and replaces a stale file."""
+    evaluated = [r["ep_id"] for r in json.loads((run_dir / "results.json").read_text())["episodes"]]
+    assert [e.ep_id for e in read_metadata(run_dir / "episodes.json")] == evaluated
+    config = EvalConfig(policy="oracle", splits=("test1",), episodes_per_split=2, categories=("mug",))
+    drawn = select_eval_episodes(config)
+    kept = [replace(drawn[0], task_instruction="the instruction the first run drew")]
+    write_metadata(kept, tmp_path / "episodes.json")
+    assert _run_episodes(config, tmp_path, None, resuming=True) == kept
+    assert _run_episodes(config, tmp_path, None, resuming=False) == drawn
+    assert not (tmp_path / "episodes.json").exists()
 
 
 def test_outcomes_do_not_depend_on_the_workers(tmp_path):

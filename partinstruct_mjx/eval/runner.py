@@ -16,7 +16,7 @@ import time
 import warnings
 from collections.abc import Iterator
 from concurrent.futures import Executor
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from pathlib import Path
 
 import jax
@@ -29,11 +29,13 @@ from partinstruct_mjx.eval.metrics import aggregate, results_markdown
 from partinstruct_mjx.eval.planner import Planner, make_planner
 from partinstruct_mjx.eval.policy import OraclePolicy, Policy, load_policy
 from partinstruct_mjx.eval.skills import SkillProgress
-from partinstruct_mjx.tasks.episodes import SPLITS, Episode
+from partinstruct_mjx.tasks.episodes import SPLITS, Episode, write_metadata
 from partinstruct_mjx.workers import default_workers, process_pool, run_in_threads, threads_per_worker
 
 RESULTS = "results.json"
 REPORT = "results.md"
+EPISODES = "episodes.json"
+"""The run's episodes in the metadata schema: `--metadata DIR/episodes.json` evaluates the same ones elsewhere."""
 SCHEMA_VERSION = 1
 
 
@@ -92,16 +94,18 @@ def _evaluate(config: EvalConfig, out_dir: Path, policy: Policy, planner: Planne
     from partinstruct_mjx.paths import assets_root
     from partinstruct_mjx.provenance import provenance
 
-    episodes = select_eval_episodes(config, pool)
+    finished = _finished(out_dir, config)
+    episodes = _run_episodes(config, out_dir, pool, resuming=(out_dir / RESULTS).exists())
     objects = object_paths(episodes, Path(config.assets) if config.assets else assets_root())
     wanted = {e.ep_id for e in episodes}
-    records = {ep_id: r for ep_id, r in _finished(out_dir, config).items() if ep_id in wanted}
+    records = {ep_id: r for ep_id, r in finished.items() if ep_id in wanted}
     filmed = set()
     for split in config.splits:
         filmed.update(e.ep_id for e in [e for e in episodes if e.split == split][:config.videos])
     todo = [e for e in episodes if e.ep_id not in records]
     meta = {"label": _label(config), "resolved": _resolved(config, episodes, policy, planner),
-            "run": {"resumed_episodes": len(records), "episodes_run": 0, "wall_s": 0.0}, "provenance": provenance()}
+            "run": {"resumed_episodes": len(records), "episodes_run": 0, "wall_s": 0.0}, "provenance": provenance(),
+            "episodes": episodes}
 
     start = time.perf_counter()
     groups = _largest_first(object_groups(todo))
@@ -145,6 +149,17 @@ def _evaluate(config: EvalConfig, out_dir: Path, policy: Policy, planner: Planne
                 agent.close()
     meta["run"]["wall_s"] = time.perf_counter() - start
     return _write(out_dir, config, meta, records, complete=True)
+
+
+def _run_episodes(config: EvalConfig, out_dir: Path, pool: Executor | None, resuming: bool) -> list[Episode]:
+    """The run's episodes: read back from `out_dir`/EPISODES by a resumed run that drew them (so a resume neither
+    waits for the draw again nor depends on it giving the same episodes on another machine or after a code change),
+    else drawn or read from --metadata (`_write` keeps them in EPISODES with the first results)."""
+    path = out_dir / EPISODES
+    if resuming and config.metadata is None and path.exists():
+        return select_eval_episodes(replace(config, metadata=str(path)))
+    path.unlink(missing_ok=True)
+    return select_eval_episodes(config, pool)
 
 
 def _largest_first(groups: dict[tuple[str, str], list[Episode]]) -> list[tuple[tuple[str, str], list[Episode]]]:
@@ -364,6 +379,8 @@ def _write(out_dir: Path, config: EvalConfig, meta: dict, records: dict[int, dic
                "config": meta["resolved"]["config"], "identity": config.identity(), "resolved": meta["resolved"],
                "run": meta["run"], "provenance": meta["provenance"],
                "summary": aggregate(ordered, list(config.splits)), "episodes": ordered}
+    if not (out_dir / EPISODES).exists():
+        write_metadata(meta["episodes"], out_dir / EPISODES)
     with atomic_write(out_dir / RESULTS) as file:
         json.dump(results, file, indent=1)
         file.write("\n")
