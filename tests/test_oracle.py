@@ -353,6 +353,38 @@ def test_oracle_follows_a_skill_mode_env_through_chained_moves(episodes):
     np.testing.assert_allclose(oracle_p0, np.asarray(state.task.skill_p0[0]), atol=1e-6)
 
 
+def test_a_push_in_a_skill_mode_env_ends_when_the_env_counts_it():
+    """bottle_000, test3 type 6 (touch its back, push it forwards, release): the env counts the push at about 7 cm;
+    the oracle then releases instead of pushing the full 0.12 m, which tipped the standing bottle over (it fell and
+    slid 27 cm, and the release never came)."""
+    from partinstruct_mjx.tasks.episodes import Episode
+    from partinstruct_mjx.tasks.skills import SkillStep
+
+    chain = (SkillStep("touch_obj", "back"), SkillStep("move_gripper", None, "front", touching=True),
+             SkillStep("release_obj"))
+    episode = Episode("bottle", "bottle_000", 3000115, 6, "test3", chain, "", ("",) * 3,
+                      (0.0, 0.0, -0.9731209475703041, 0.230294640406314, -0.03212594378940533, 0.1590563930549288,
+                       0.0), 1.0, 2167094895)
+    xml = assets_root() / "objects" / "bottle" / "bottle_000" / "object.xml"
+    with PartInstructEnv(xml, 1, EnvConfig(skill_mode=True)) as env:
+        state = env.reset(jax.random.PRNGKey(0), [episode])
+        standing = float(state.data.object_pos[0, 2])
+        policy = OraclePolicy()
+        policy.reset(env, state, jax.random.PRNGKey(0))
+        counted = released = None
+        for step in range(250):
+            state = env.step(state, policy.act(env, state))
+            if counted is None and int(state.task.skill_index[0]) == 2:
+                counted = step
+            if released is None and int(policy.state.skill[0]) == 2:
+                released, height = step, float(state.data.object_pos[0, 2])
+            if bool(state.done[0]):
+                break
+    assert counted is not None and released is not None and released - counted <= 1
+    assert abs(height - standing) < 0.01
+    assert bool(state.task.success[0])
+
+
 def test_the_first_move_of_a_task_mode_chain_starts_from_the_tasks_p0(episodes):
     """Grasp, then lift, in a task-mode env whose task started 2 cm from where the bottle stands: the lift's p0 is the
     task's (where the task measures AT from), not the bottle's position when the grasp ended."""

@@ -899,9 +899,10 @@ def _act_one(o: OracleState, data, geo: PartGeometry, rows, facts, env, phase_go
     done = jnp.select([kind <= TOUCH, kind == MOVE, kind == ROTATE], [reach_done, move_done, rotate_done],
                       release_done)
     if follow_env:
-        # Moves run their full 0.12 m (a carry stopped early swings the object off the fingers; the next move is
-        # measured from the env's p0 anyway); other skills end once the env counts them.
-        done = done | ((env_skill > o.skill) & (kind != MOVE))
+        # Carries run their full 0.12 m (a carry stopped early swings the object off the fingers; the next move is
+        # measured from the env's p0 anyway); other skills, pushes too, end once the env counts them (a bottle pushed
+        # on past that by its back tipped over, and the release after it never came).
+        done = done | ((env_skill > o.skill) & ((kind != MOVE) | push))
     next_stage = jnp.select([kind <= TOUCH, kind == MOVE, kind == RELEASE, kind == ROTATE],
                             [reach_stage, move_stage, jnp.minimum(stage + release_next, 2), turn_stage], stage)
     # Release starts from the pose it has now: remember it as the retreat's reference.
