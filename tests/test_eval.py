@@ -199,17 +199,18 @@ def test_rerun_resumes_and_other_settings_are_refused(metadata, run_dir, capsys)
 
 def test_a_run_keeps_its_episodes_and_a_resume_reads_them_back(run_dir, tmp_path):
     """DIR/episodes.json holds the evaluated episodes (metadata schema). A resumed run of drawn episodes takes them
-    from there, not from a new draw (which another machine or a code change could make differ); a new run draws
-    and replaces a stale file."""
+    from there, not from a new draw (which another machine or a code change could make differ); a new run draws.
+    A run given that file as --metadata reads it and does not write over it."""
     evaluated = [r["ep_id"] for r in json.loads((run_dir / "results.json").read_text())["episodes"]]
     assert [e.ep_id for e in read_metadata(run_dir / "episodes.json")] == evaluated
     config = EvalConfig(policy="oracle", splits=("test1",), episodes_per_split=2, categories=("mug",))
     drawn = select_eval_episodes(config)
     kept = [replace(drawn[0], task_instruction="the instruction the first run drew")]
     write_metadata(kept, tmp_path / "episodes.json")
-    assert _run_episodes(config, tmp_path, None, resuming=True) == kept
-    assert _run_episodes(config, tmp_path, None, resuming=False) == drawn
-    assert not (tmp_path / "episodes.json").exists()
+    assert _run_episodes(config, tmp_path, None, resuming=True) == (kept, True)
+    assert _run_episodes(config, tmp_path, None, resuming=False) == (drawn, False)
+    given = replace(config, metadata=str(tmp_path / "episodes.json"), episodes_per_split=None)
+    assert _run_episodes(given, tmp_path, None, resuming=False) == (kept, True)
 
 
 def test_outcomes_do_not_depend_on_the_workers(tmp_path):

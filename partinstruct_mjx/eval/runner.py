@@ -95,7 +95,7 @@ def _evaluate(config: EvalConfig, out_dir: Path, policy: Policy, planner: Planne
     from partinstruct_mjx.provenance import provenance
 
     finished = _finished(out_dir, config)
-    episodes = _run_episodes(config, out_dir, pool, resuming=(out_dir / RESULTS).exists())
+    episodes, read_back = _run_episodes(config, out_dir, pool, resuming=(out_dir / RESULTS).exists())
     objects = object_paths(episodes, Path(config.assets) if config.assets else assets_root())
     wanted = {e.ep_id for e in episodes}
     records = {ep_id: r for ep_id, r in finished.items() if ep_id in wanted}
@@ -105,7 +105,7 @@ def _evaluate(config: EvalConfig, out_dir: Path, policy: Policy, planner: Planne
     todo = [e for e in episodes if e.ep_id not in records]
     meta = {"label": _label(config), "resolved": _resolved(config, episodes, policy, planner),
             "run": {"resumed_episodes": len(records), "episodes_run": 0, "wall_s": 0.0}, "provenance": provenance(),
-            "episodes": episodes}
+            "unwritten_episodes": None if read_back else episodes}
 
     start = time.perf_counter()
     groups = _largest_first(object_groups(todo))
@@ -151,15 +151,18 @@ def _evaluate(config: EvalConfig, out_dir: Path, policy: Policy, planner: Planne
     return _write(out_dir, config, meta, records, complete=True)
 
 
-def _run_episodes(config: EvalConfig, out_dir: Path, pool: Executor | None, resuming: bool) -> list[Episode]:
-    """The run's episodes: read back from `out_dir`/EPISODES by a resumed run that drew them (so a resume neither
-    waits for the draw again nor depends on it giving the same episodes on another machine or after a code change),
-    else drawn or read from --metadata (`_write` keeps them in EPISODES with the first results)."""
+def _run_episodes(config: EvalConfig, out_dir: Path, pool: Executor | None,
+                  resuming: bool) -> tuple[list[Episode], bool]:
+    """The run's episodes, and whether they came from `out_dir`/EPISODES: a resumed run that drew them reads them
+    back from there (so a resume neither waits for the draw again nor depends on it giving the same episodes on
+    another machine or after a code change), and so does a run whose --metadata is that file; else they are drawn
+    or read from --metadata, and `_write` keeps them in EPISODES with the first results."""
     path = out_dir / EPISODES
-    if resuming and config.metadata is None and path.exists():
-        return select_eval_episodes(replace(config, metadata=str(path)))
-    path.unlink(missing_ok=True)
-    return select_eval_episodes(config, pool)
+    if config.metadata is not None:
+        return select_eval_episodes(config, pool), path.exists() and path.samefile(config.metadata)
+    if resuming and path.exists():
+        return select_eval_episodes(replace(config, metadata=str(path))), True
+    return select_eval_episodes(config, pool), False
 
 
 def _largest_first(groups: dict[tuple[str, str], list[Episode]]) -> list[tuple[tuple[str, str], list[Episode]]]:
@@ -379,8 +382,9 @@ def _write(out_dir: Path, config: EvalConfig, meta: dict, records: dict[int, dic
                "config": meta["resolved"]["config"], "identity": config.identity(), "resolved": meta["resolved"],
                "run": meta["run"], "provenance": meta["provenance"],
                "summary": aggregate(ordered, list(config.splits)), "episodes": ordered}
-    if not (out_dir / EPISODES).exists():
-        write_metadata(meta["episodes"], out_dir / EPISODES)
+    if meta["unwritten_episodes"] is not None:
+        write_metadata(meta["unwritten_episodes"], out_dir / EPISODES)
+        meta["unwritten_episodes"] = None
     with atomic_write(out_dir / RESULTS) as file:
         json.dump(results, file, indent=1)
         file.write("\n")
