@@ -7,12 +7,10 @@ from functools import partial
 
 import jax
 import jax.numpy as jnp
-import mujoco
 import numpy as np
 import pytest
 
 from partinstruct_mjx.assets.catalog import load_catalog
-from partinstruct_mjx.assets.partnet import category_slug
 from partinstruct_mjx.control import jax_ik
 from partinstruct_mjx.control.rotations import axis_angle_to_quat, quat_rotate
 from partinstruct_mjx.env import EnvConfig, PartInstructEnv, hold_action
@@ -803,89 +801,6 @@ def _box_put_down(height, settle):
     hand = float(rotation.hand_bottom(pos, quat)) + rotation.PUT_DOWN_SLACK
     descent = min(float(lowest), hand) - TABLE_HEIGHT
     return abs(float(origin) - descent - TABLE_HEIGHT - height / 2), hand >= float(lowest)
-
-
-def test_the_arms_lowest_point_is_that_of_its_collision_capsules():
-    # arm_bottom against MuJoCo's own placement of the arm's collision capsules (panda_link4-6) at random joints.
-    scene = build_scene()
-    model, data = scene.model, mujoco.MjData(scene.model)
-    kinematics = jax_ik.ArmKinematics.from_scene(scene)
-    links = [model.body(f"panda_link{i}").id for i in (4, 5, 6)]
-    capsules = [g for g in range(model.ngeom) if model.geom_bodyid[g] in links
-                and model.geom_type[g] == mujoco.mjtGeom.mjGEOM_CAPSULE and model.geom_contype[g]]
-    arm = [model.joint(name).qposadr[0] for name in panda.ARM_JOINTS]
-    lower, upper = model.jnt_range[[model.joint(name).id for name in panda.ARM_JOINTS]].T
-    for q in np.random.default_rng(0).uniform(lower, upper, (8, 7)):
-        data.qpos[arm] = q
-        mujoco.mj_kinematics(model, data)
-        lowest = min(min(data.geom_xpos[g][2] + sign * model.geom_size[g, 1] * data.geom_xmat[g][8]
-                         for sign in (-1, 1)) - model.geom_size[g, 0] for g in capsules)
-        assert float(rotation.arm_bottom(kinematics, jnp.asarray(q, jnp.float32))) == pytest.approx(lowest, abs=1e-4)
-
-
-def _task_mode_run(episode, steps, watch):
-    """`episode` in a task-mode env with the oracle's first tries, keyed as `partinstruct demos` keys them; calls
-    `watch(env, state, oracle)` after every step until the episode ends."""
-    xml = assets_root() / "objects" / category_slug(episode.obj_class) / episode.obj_id / "object.xml"
-    key = jax.random.split(jax.random.PRNGKey(0))[0]
-    with PartInstructEnv(xml, 1, EnvConfig(skill_mode=False)) as env:
-        state = env.reset(key, [episode])
-        policy = OraclePolicy()
-        policy.reset(env, state, key)
-        for _ in range(steps):
-            state = env.step(state, policy.act(env, state))
-            watch(env, state, policy.state)
-            if bool(state.done[0]):
-                break
-
-
-def _air_turn_episode(obj_class, obj_id, ep_id, grasped, turned, direction, pose, seed):
-    from partinstruct_mjx.tasks.episodes import Episode
-    from partinstruct_mjx.tasks.skills import SkillStep
-
-    chain = (SkillStep("grasp_obj", grasped), SkillStep("move_gripper", None, "top", grasping=True),
-             SkillStep("rotate_obj", turned, direction),
-             SkillStep("move_gripper", None, "bottom", grasping=True, put_down=True))
-    return Episode(obj_class, obj_id, ep_id, 11, "test4", chain, "", ("",) * 4, pose, 1.0, seed)
-
-
-@pytest.mark.slow
-def test_an_air_turn_and_its_carry_back_keep_the_arm_off_the_table():
-    """display_003 (880 draw, episode 4000122: held by its right side, lifted, turned bottom up, put down). The turn
-    about the TCP swung the display 14 cm up, and carrying it back down put the forearm on the table; the put-down
-    could not go down and the display stayed 24 cm above where it was. The plan now checks that way for the arm."""
-    episode = _air_turn_episode("display", "display_003", 4000122, "right", "bottom", "top",
-                                (0.0, 0.0, 0.7995940964549235, 0.6005408236868119, 0.011040613392707815,
-                                 -0.03842119777848812, 0.0), 2173560166)
-    lowest = []
-
-    def watch(env, state, oracle):
-        if int(oracle.skill[0]) == 2:
-            lowest.append(float(rotation.arm_bottom(env.kinematics, jnp.asarray(state.data.arm_qpos[0], jnp.float32))))
-
-    _task_mode_run(episode, 260, watch)
-    assert lowest and min(lowest) > TABLE_HEIGHT + 0.01
-
-
-@pytest.mark.slow
-def test_a_put_down_the_table_stops_keeps_its_command_near_the_hand():
-    """kitchen_pot_002 (880 draw, episode 4000152: held by its back, lifted, turned left side down, put down). The
-    hand meets the table with the pot still above it; the put-down's command had run on a metre below the table, and
-    the arm driven against it shoved the pot 16 cm sideways. Now the command stays PUT_DOWN_LEAD below the hand."""
-    episode = _air_turn_episode("kitchen pot", "kitchen_pot_002", 4000152, "back", "left", "bottom",
-                                (0.0, 0.0, 0.8492872642943664, 0.5279310018434142, -0.009393402621864395,
-                                 -0.05436060670738039, 0.0), 2386711390)
-    leads, places = [], []
-
-    def watch(env, state, oracle):
-        if int(oracle.skill[0]) == 3:
-            leads.append(float(state.data.tcp_pos[0, 2] - oracle.cmd_pos[0, 2]))
-            places.append(np.asarray(state.data.object_pos[0, :2]))
-
-    _task_mode_run(episode, 400, watch)
-    assert len(leads) > 100
-    assert max(leads) < machine.PUT_DOWN_LEAD + 0.005
-    assert np.linalg.norm(places[-1] - places[0]) < 0.03
 
 
 def test_a_turn_before_a_put_down_leaves_the_object_where_the_put_down_can_meet_its_goal():

@@ -143,13 +143,12 @@ class IKConfig:
                 raise ValueError(f"IKConfig.{name} must be >= 0, got {getattr(self, name)}")
 
 
-def _frames(kin: ArmKinematics, q: jnp.ndarray) -> tuple[jnp.ndarray, ...]:
-    """World joint anchors (7, 3), world joint axes (7, 3), TCP position (3,) and rotation matrix (3, 3), and each
-    jointed body's world position (7, 3) and rotation matrix (7, 3, 3)."""
+def _frames(kin: ArmKinematics, q: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray, jnp.ndarray, jnp.ndarray]:
+    """World joint anchors (7, 3), world joint axes (7, 3), TCP position (3,) and rotation matrix (3, 3)."""
     rot_mat = rot.quat_to_matrix(kin.base_quat)
     pos = kin.base_pos
     body_mat = rot.quat_to_matrix(kin.body_quat)
-    anchors, axes, body_pos, body_rot = [], [], [], []
+    anchors, axes = [], []
     for i in range(q.shape[-1]):
         pos = pos + _matmul(rot_mat, kin.body_pos[i])
         rot_mat = _matmul(rot_mat, body_mat[i])
@@ -159,11 +158,9 @@ def _frames(kin: ArmKinematics, q: jnp.ndarray) -> tuple[jnp.ndarray, ...]:
         pos = anchor - _matmul(rot_mat, kin.joint_pos[i])
         anchors.append(anchor)
         axes.append(axis)
-        body_pos.append(pos)
-        body_rot.append(rot_mat)
     tcp_pos = pos + _matmul(rot_mat, kin.tcp_pos)
     tcp_mat = _matmul(rot_mat, rot.quat_to_matrix(kin.tcp_quat))
-    return jnp.stack(anchors), jnp.stack(axes), tcp_pos, tcp_mat, jnp.stack(body_pos), jnp.stack(body_rot)
+    return jnp.stack(anchors), jnp.stack(axes), tcp_pos, tcp_mat
 
 
 def _matmul(a: jnp.ndarray, b: jnp.ndarray) -> jnp.ndarray:
@@ -179,14 +176,8 @@ def _axis_angle_matrix(axis: jnp.ndarray, angle: jnp.ndarray) -> jnp.ndarray:
 
 def forward_kinematics(kin: ArmKinematics, q: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray]:
     """TCP position (3,) and orientation (4,) (w, x, y, z) in the world for arm joint angles q (7,)."""
-    _, _, tcp_pos, tcp_mat, _, _ = _frames(kin, q)
+    _, _, tcp_pos, tcp_mat = _frames(kin, q)
     return tcp_pos, rot.matrix_to_quat(tcp_mat)
-
-
-def body_frames(kin: ArmKinematics, q: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray]:
-    """World position (7, 3) and rotation matrix (7, 3, 3) of each jointed body for arm joint angles q (7,)."""
-    *_, body_pos, body_rot = _frames(kin, q)
-    return body_pos, body_rot
 
 
 batched_forward_kinematics = jax.vmap(forward_kinematics, in_axes=(None, 0))
@@ -195,7 +186,7 @@ batched_forward_kinematics = jax.vmap(forward_kinematics, in_axes=(None, 0))
 
 def jacobian(kin: ArmKinematics, q: jnp.ndarray) -> jnp.ndarray:
     """Geometric Jacobian (6, 7) of the TCP: rows = world linear velocity, then world angular velocity."""
-    anchors, axes, tcp_pos, *_ = _frames(kin, q)
+    anchors, axes, tcp_pos, _ = _frames(kin, q)
     return _jacobian(anchors, axes, tcp_pos)
 
 
@@ -212,7 +203,7 @@ def _ik_step(kin: ArmKinematics, config: IKConfig, target_pos: jnp.ndarray, targ
     A second pass re-solves without the joints that sit on a limit and are pushed outwards, so the other joints
     make up for them (mink gets the same effect from its QP's limit constraints).
     """
-    anchors, axes, tcp_pos, tcp_mat, *_ = _frames(kin, q)
+    anchors, axes, tcp_pos, tcp_mat = _frames(kin, q)
     weight = config.orientation_weight
     jac = _jacobian(anchors, axes, tcp_pos, weight)
     rot_error = rot.quat_error(target_quat, rot.matrix_to_quat(tcp_mat))

@@ -127,8 +127,6 @@ a kitchen pot 4 mm in its slide, and ON (2 mm) never held."""
 AIR_TURN_LEVER_WEIGHT = 20.0
 """Grasp score lost per metre between the object's middle and the pinch axis in chains that turn the object in the
 air (candidates.grasp_candidates' lever_weight)."""
-PUT_DOWN_LEAD = 0.03
-"""Metres a put-down's command may go below the measured TCP."""
 LIFT_START_SPEED = 0.0015
 LIFT_ACCELERATION = 0.000125
 """A carry's commanded speed starts at this (m per step) and grows by this per step up to CARRY_SPEED (68 steps;
@@ -772,11 +770,7 @@ def _act_one(o: OracleState, data, geo: PartGeometry, rows, facts, env, phase_go
     error = goal_obj - data.object_pos
     push = o.touching[index]
     put_down = o.put_down[index]
-    # A put-down lowers the command, never more than PUT_DOWN_LEAD below the hand: where the table stops the arm, the
-    # command stays there instead of running on down (it had gone a metre below the table, and the arm, driven
-    # against it, shoved the held kitchen pot 16 cm sideways; 880 draw, episode 4000152).
-    lowered = jnp.maximum(o.cmd_pos[2] - 0.02, tcp[2] - PUT_DOWN_LEAD)
-    move_goal = jnp.where(put_down, o.cmd_pos.at[2].set(lowered), o.cmd_pos + error)
+    move_goal = jnp.where(put_down, o.cmd_pos - 0.02 * up, o.cmd_pos + error)
     # A carry starts slowly (the grip settles under the load) and speeds up.
     carry_speed = jnp.minimum(CARRY_SPEED, LIFT_START_SPEED + LIFT_ACCELERATION * steps)
     pos_c, _ = _toward(o.cmd_pos, o.cmd_quat, move_goal, o.cmd_quat, carry_speed, TURN_SPEED)
@@ -866,7 +860,8 @@ def _act_one(o: OracleState, data, geo: PartGeometry, rows, facts, env, phase_go
                                          o.anchor_quat)
     pos_1 = pos_1 + o.turn_raise * jnp.minimum(1.0, 2.0 * turn_progress) * up
     # 3 carry the object back to where the turn started (on the table: sideways only; in the air: clear of it).
-    back = rotation.carry_back(o.p0, data.object_pos, lowest, rotation.hand_bottom(tcp, o.cmd_quat), flat)
+    back = (o.p0 - data.object_pos) * jnp.where(flat, jnp.array([1.0, 1.0, 0.0]), 1.0)
+    back = jnp.where(flat, back, back.at[2].set(jnp.maximum(back[2], TABLE_HEIGHT + rotation.TABLE_CLEARANCE - lowest)))
     recentre_speed = jnp.minimum(CARRY_SPEED, RECENTRE_ACCELERATION * (steps + 1))
     pos_3, _ = _toward(o.cmd_pos, o.cmd_quat, o.anchor_pos, o.cmd_quat, recentre_speed, TURN_SPEED)
     pos_t = jnp.select([stage == 1, stage == 3], [pos_1, pos_3], o.cmd_pos)

@@ -69,24 +69,6 @@ the air keeps above the table too: a mug turned upside down by its rim about its
 under the table top, and the arm, stopped by the table, never finished the turn (type 16)."""
 
 
-ARM_CAPSULES = ((3, (0.0, 0.0, 0.0), (-0.0825, 0.12, 0.0), 0.058), (4, (0.0, 0.0, -0.26), (0.0, 0.0, 0.0), 0.05),
-                (5, (0.0, 0.0, 0.0), (0.088, 0.0, 0.0), 0.05))
-"""The arm's collision capsules from the elbow to the wrist (assets_mjcf/robots/panda/panda.xml, panda_link4-6): the
-jointed body's index, the two ends in its frame, the radius. The last link and the hand are HAND_SPHERES."""
-ARM_CLEARANCE = 0.005
-"""Height (m) above the table the arm's capsules keep along a turn in the air and the put-down after it: a display
-held by its side and turned upside down ended with the forearm on the table, the put-down could not go down, and
-the display stayed 24 cm above where it was (880 draw, episode 4000122)."""
-
-
-def arm_bottom(kinematics, q):
-    """Height of the lowest point of the arm's capsules (ARM_CAPSULES) at joint angles `q`."""
-    body_pos, body_rot = jax_ik.body_frames(kinematics, q)
-    lows = [jnp.minimum(body_pos[i][2] + body_rot[i][2] @ jnp.asarray(a), body_pos[i][2] + body_rot[i][2] @ jnp.asarray(b))
-            - radius for i, a, b, radius in ARM_CAPSULES]
-    return jnp.stack(lows).min()
-
-
 def arc(v: jnp.ndarray, d: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray]:
     """Axis (3,) and angle of the shortest rotation taking unit vector v onto unit vector d (any perpendicular axis,
     preferring a horizontal one, when they are opposite)."""
@@ -135,16 +117,6 @@ def options(v: jnp.ndarray, d: jnp.ndarray, on_table: jnp.ndarray) -> tuple[jnp.
     return axes, angles, valid
 
 
-def carry_back(start, object_pos, lowest, hand_low, on_table):
-    """The shift (3,) that carries a turned object at `object_pos` back to where its turn started (`start`): sideways
-    only on the table; in the air no lower than keeps its lowest point (`lowest`, m) and the hand's (`hand_low`,
-    hand_bottom) TABLE_CLEARANCE above the table (a turn raised the hand to keep it clear, and carried straight back
-    down the hand met the table)."""
-    back = (start - object_pos) * jnp.where(on_table, jnp.array([1.0, 1.0, 0.0]), 1.0)
-    floor = TABLE_HEIGHT + TABLE_CLEARANCE - jnp.minimum(lowest, hand_low)
-    return jnp.where(on_table, back, back.at[2].set(jnp.maximum(back[2], floor)))
-
-
 def turned_pose(pivot, axis, angle, fraction, hand_pos, hand_quat):
     """TCP pose after turning `fraction` of the way about `axis` through `pivot`."""
     turn = axis_angle_to_quat(axis, fraction * angle)
@@ -172,10 +144,9 @@ def reach(kinematics, config, joints, pos, quat):
 
 def _reach_step(kinematics, joints, ok, pos, quat):
     """`reach` from `joints`: the joints reached, and `ok` still holding if it got there without a joint jumping
-    (MAX_JOINT_JUMP) and with the arm above the table (ARM_CLEARANCE)."""
+    (MAX_JOINT_JUMP)."""
     reached, hit = reach(kinematics, REACH_CONFIG, joints, pos, quat)
-    clear = arm_bottom(kinematics, reached) > TABLE_HEIGHT + ARM_CLEARANCE
-    return reached, ok & hit & clear & (jnp.abs(reached - joints).max() < MAX_JOINT_JUMP)
+    return reached, ok & hit & (jnp.abs(reached - joints).max() < MAX_JOINT_JUMP)
 
 
 class TurnPlan(NamedTuple):
@@ -226,18 +197,6 @@ def plan(kinematics, q, hand_pos, hand_quat, object_pos, object_points, object_v
 
         (joints, ok), _ = jax.lax.scan(follow, (q, jnp.asarray(True)), jnp.asarray(FRACTIONS, jnp.float32))
         turned_origin = pivot + quat_rotate(axis_angle_to_quat(axis, angle), object_pos - pivot)
-        # The machine then carries the object back to where the turn started (a turn about the TCP swings it round
-        # the grasp); the arm must reach that way too.
-        end_pos, end_quat = turned_pose(pivot, axis, angle, 1.0, hand_pos, hand_quat)
-        end_pos = end_pos + raise_by * jnp.asarray(UP)
-        back = carry_back(object_pos, turned_origin + raise_by * jnp.asarray(UP), lowest(1.0) + raise_by,
-                          hand_bottom(end_pos, end_quat), on_table)
-
-        def carry(state, fraction):
-            return _reach_step(kinematics, *state, end_pos + fraction * back, end_quat), None
-
-        (back_joints, ok), _ = jax.lax.scan(carry, (joints, ok), jnp.asarray(PUT_DOWN_FRACTIONS))
-        end_pos = end_pos + back
 
         def put_down():
             # The hand lowers the object until its lowest point meets the table or the hand meets it first, and the
@@ -245,16 +204,18 @@ def plan(kinematics, q, hand_pos, hand_quat, object_pos, object_points, object_v
             # before the lift: the origin must end near the height above the table it rested at (a bucket turned
             # upside down by its rim stays a few centimetres up, held where the hand meets the table: the task's AT
             # still holds, the put-down skill's ON does not).
-            drop = jnp.maximum(lowest(1.0) + raise_by + back[2] - TABLE_HEIGHT, 0.0)
+            end_pos, end_quat = turned_pose(pivot, axis, angle, 1.0, hand_pos, hand_quat)
+            end_pos = end_pos + raise_by * jnp.asarray(UP)
+            drop = jnp.maximum(lowest(1.0) + raise_by - TABLE_HEIGHT, 0.0)
             hand_room = hand_bottom(end_pos, end_quat) - TABLE_HEIGHT + PUT_DOWN_SLACK
             descent = jnp.clip(jnp.minimum(drop, hand_room), 0.0, None)
 
             def lower(carry, fraction):
                 return _reach_step(kinematics, *carry, end_pos - fraction * descent * jnp.asarray(UP), end_quat), None
 
-            (_, down_ok), _ = jax.lax.scan(lower, (back_joints, jnp.asarray(True)), jnp.asarray(PUT_DOWN_FRACTIONS))
+            (_, down_ok), _ = jax.lax.scan(lower, (joints, jnp.asarray(True)), jnp.asarray(PUT_DOWN_FRACTIONS))
             rested_at = object_pos[2] - lowest(0.0)
-            ends_at = turned_origin[2] + raise_by + back[2] - descent - TABLE_HEIGHT
+            ends_at = turned_origin[2] + raise_by - descent - TABLE_HEIGHT
             # Whether it can be made, and whether it ends with the object held above the table.
             return down_ok & (jnp.abs(ends_at - rested_at) < MAX_RESTING_CHANGE), descent < drop
 
