@@ -385,6 +385,36 @@ def test_a_push_in_a_skill_mode_env_ends_when_the_env_counts_it():
     assert bool(state.task.success[0])
 
 
+@pytest.mark.slow
+def test_an_episode_acts_the_same_in_batches_of_any_size():
+    """bottle_000, test3 type 6, alone and in batches of 2 and 5 (copies of it): the oracle's actions are the same bit
+    for bit. Before the IK padded batches of 1 and 2 (jax_ik.MIN_BATCH) they drifted 1 ulp apart after 65 steps."""
+    from partinstruct_mjx.tasks.episodes import Episode
+    from partinstruct_mjx.tasks.skills import SkillStep
+
+    chain = (SkillStep("touch_obj", "back"), SkillStep("move_gripper", None, "front", touching=True),
+             SkillStep("release_obj"))
+    episode = Episode("bottle", "bottle_000", 3000115, 6, "test3", chain, "", ("",) * 3,
+                      (0.0, 0.0, -0.9731209475703041, 0.230294640406314, -0.03212594378940533, 0.1590563930549288,
+                       0.0), 1.0, 2167094895)
+    xml = assets_root() / "objects" / "bottle" / "bottle_000" / "object.xml"
+    actions = {}
+    for size in (1, 2, 5):
+        with PartInstructEnv(xml, size, EnvConfig(skill_mode=True)) as env:
+            state = env.reset(jax.random.PRNGKey(0), [episode] * size)
+            policy = OraclePolicy()
+            policy.reset(env, state, jax.random.PRNGKey(0))
+            steps = []
+            for _ in range(90):
+                action = policy.act(env, state)
+                steps.append(np.asarray(action))
+                state = env.step(state, action)
+        actions[size] = np.stack(steps)
+    for size in (1, 2):
+        np.testing.assert_array_equal(actions[size][:, 0], actions[5][:, 0])
+    np.testing.assert_array_equal(actions[5][:, 4], actions[5][:, 0])
+
+
 def test_the_first_move_of_a_task_mode_chain_starts_from_the_tasks_p0(episodes):
     """Grasp, then lift, in a task-mode env whose task started 2 cm from where the bottle stands: the lift's p0 is the
     task's (where the task measures AT from), not the bottle's position when the grasp ended."""
