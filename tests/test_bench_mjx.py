@@ -149,7 +149,7 @@ def test_plot_is_drawn_from_the_data_files(tmp_path):
 
 
 @pytest.mark.slow
-def test_mjx_suite_end_to_end_on_cpu(tmp_path, monkeypatch, capsys):
+def test_mjx_suite_end_to_end_on_cpu(tmp_path, monkeypatch, capsys, mug_scene):
     """`partinstruct bench mjx` with batch 2 and 2 steps (one variant to keep it short): section, data, plot."""
     pytest.importorskip("brax")
     from partinstruct_mjx.cli import main
@@ -162,7 +162,8 @@ def test_mjx_suite_end_to_end_on_cpu(tmp_path, monkeypatch, capsys):
                  "--output", str(report)]) == 0
     text = report.read_text()
     assert "<!-- bench:mjx_cpu -->" in text and "## MJX env steps (impl jax, warp, CPU)" in text
-    assert "| mug_000 | jax | 10 |" in text and "| object-table only | jax | 10 |" in text
+    hulls = len(mug_scene.object_geoms)
+    assert f"| mug_000 | jax | {hulls} |" in text and f"| object-table only | jax | {hulls} |" in text
     assert "Target not assessed: batch 4,096 was not measured." in text
     rows = read_data(tmp_path / "bench_data")["mjx_cpu"]["rows"]
     assert [(r["variant"], r["impl"]) for r in rows] == [(mjx_env.AS_BUILT, "jax"), ("object-table only", "jax"),
@@ -174,7 +175,7 @@ def test_mjx_suite_end_to_end_on_cpu(tmp_path, monkeypatch, capsys):
     assert plot.plot(tmp_path / "bench_data", tmp_path / "plot.png").exists()
 
 
-def test_warp_only_run_writes_its_own_section(tmp_path):
+def test_warp_only_run_writes_its_own_section(tmp_path, mug_scene):
     """`--impls warp` measures no JAX rows and writes a section of its own (here without warp-lang or a GPU: the
     row says why it was not measured)."""
     from mujoco.mjx import warp as mjx_warp
@@ -188,4 +189,5 @@ def test_warp_only_run_writes_its_own_section(tmp_path):
                  str(report)]) == 0
     text = report.read_text()
     assert "<!-- bench:mjx_cpu_warp -->" in text and "## MJX env steps (impl warp, CPU)" in text
-    assert "| mug_000 | warp | 13 | - | 4,096 | not installed" in text and "| jax |" not in text
+    hulls = len(mug_scene.object_geoms)
+    assert f"| mug_000 | warp | {hulls} | - | 4,096 | not installed" in text and "| jax |" not in text
