@@ -713,10 +713,10 @@ def test_backtracking_restores_a_scene_exactly_and_leaves_the_others(episodes):
 
 @pytest.mark.slow
 def test_backtracking_finds_a_grasp_the_first_try_missed_and_the_demo_replays(episodes):
-    """bucket_005, type 3 (grasp the handle, carry the bucket): the first try fails; a retry, which passes over the
-    grasps the first try ranked best, stands. Its demo replays to success in a fresh env, and the look-ahead policy
-    repeats it without rewinding."""
-    episode = next(e for e in episodes if e.obj_id == "bucket_005" and e.task_type == 3)
+    """bottle_002, type 1 (grasp): the first try fails; a retry, which passes over the grasps the first try ranked
+    best, stands. Its demo replays to success in a fresh env, and the look-ahead policy repeats it without rewinding.
+    (It was bucket_005's type-3 episode until that one's first try succeeded.)"""
+    episode = next(e for e in episodes if e.obj_id == "bottle_002" and e.task_type == 1)
     key = jax.random.PRNGKey(0)
     with _env(episode) as env:
         [single] = run_oracle(env, [episode], key, record=False, tries=1)
