@@ -1106,20 +1106,19 @@ def test_a_pinch_on_thin_blades_holds_with_the_contact_split():
 
 @pytest.mark.slow
 def test_an_episode_no_attempt_solves_reports_its_furthest_attempt():
-    """display_007, test4 type 16 (touch, push, release, grasp, lift, turn, put down): its first attempt pushes and
-    fails the grasp (skill 3); once every try has failed, the last attempt is the touch's sixth try, which passes
-    over its best candidates and fails the touch itself. The episode reports the furthest attempt, which the
-    evaluation's look-ahead then replays (it reported the touch, and evaluation counted a touch failure)."""
+    """display_007, test4 type 14 (touch, push, release, grasp, turn on the table): its first attempt pushes and fails
+    the grasp (skill 3), and no try of the grasp or of the touch before it solves the episode. The episode reports
+    the furthest attempt, the first (tries [0, 0], the grasp), which the evaluation's look-ahead then replays. (It
+    was display_007's type-16 episode 4000029 until that one's first attempt succeeded; an episode reporting
+    its last attempt had reported a touch failure, and evaluation counted one.)"""
     from partinstruct_mjx.tasks.episodes import Episode
     from partinstruct_mjx.tasks.skills import SkillStep
 
-    chain = (SkillStep("touch_obj", "left"), SkillStep("move_gripper", None, "right", touching=True),
-             SkillStep("release_obj"), SkillStep("grasp_obj", "front"),
-             SkillStep("move_gripper", None, "top", grasping=True), SkillStep("rotate_obj", "back", "left"),
-             SkillStep("move_gripper", None, "bottom", grasping=True, put_down=True))
-    episode = Episode("display", "display_007", 4000029, 16, "test4", chain, "", ("",) * 7,
-                      (0.0, 0.0, 0.5942122918941292, 0.8043082444945633, -0.04159950515992373, 0.194942454288199,
-                       0.0), 1.0, 3366277851)
+    chain = (SkillStep("touch_obj", "base support"), SkillStep("move_gripper", None, "front", touching=True),
+             SkillStep("release_obj"), SkillStep("grasp_obj", "back"), SkillStep("rotate_obj", "left", "back"))
+    episode = Episode("display", "display_007", 4000054, 14, "test4", chain, "", ("",) * 5,
+                      (0.0, 0.0, 0.13778517178637398, 0.9904621378103251, 0.0680052343926415, 0.06894132992829498,
+                       0.0), 1.0, 2619480277)
     xml = assets_root() / "objects" / "display" / "display_007" / "object.xml"
     with PartInstructEnv(xml, 1, EnvConfig(skill_mode=True)) as env:
         (first,) = run_oracle(env, [episode], jax.random.PRNGKey(0), record=False, tries=1)
