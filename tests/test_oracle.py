@@ -353,10 +353,8 @@ def test_oracle_follows_a_skill_mode_env_through_chained_moves(episodes):
     np.testing.assert_allclose(oracle_p0, np.asarray(state.task.skill_p0[0]), atol=1e-6)
 
 
-def test_a_push_in_a_skill_mode_env_ends_when_the_env_counts_it():
-    """bottle_000, test3 type 6 (touch its back, push it forwards, release): the env counts the push at about 7 cm;
-    the oracle then releases instead of pushing the full 0.12 m, which tipped the standing bottle over (it fell and
-    slid 27 cm, and the release never came)."""
+def _bottle_push_episode():
+    """bottle_000's test3 episode 3000115 (type 6: touch its back, push it forwards, release) and its object.xml."""
     from partinstruct_mjx.tasks.episodes import Episode
     from partinstruct_mjx.tasks.skills import SkillStep
 
@@ -365,7 +363,14 @@ def test_a_push_in_a_skill_mode_env_ends_when_the_env_counts_it():
     episode = Episode("bottle", "bottle_000", 3000115, 6, "test3", chain, "", ("",) * 3,
                       (0.0, 0.0, -0.9731209475703041, 0.230294640406314, -0.03212594378940533, 0.1590563930549288,
                        0.0), 1.0, 2167094895)
-    xml = assets_root() / "objects" / "bottle" / "bottle_000" / "object.xml"
+    return episode, assets_root() / "objects" / "bottle" / "bottle_000" / "object.xml"
+
+
+def test_a_push_in_a_skill_mode_env_ends_when_the_env_counts_it():
+    """bottle_000, test3 type 6 (touch its back, push it forwards, release): the env counts the push at about 7 cm;
+    the oracle then releases instead of pushing the full 0.12 m, which tipped the standing bottle over (it fell and
+    slid 27 cm, and the release never came)."""
+    episode, xml = _bottle_push_episode()
     with PartInstructEnv(xml, 1, EnvConfig(skill_mode=True)) as env:
         state = env.reset(jax.random.PRNGKey(0), [episode])
         standing = float(state.data.object_pos[0, 2])
@@ -389,15 +394,7 @@ def test_a_push_in_a_skill_mode_env_ends_when_the_env_counts_it():
 def test_an_episode_acts_the_same_in_batches_of_any_size():
     """bottle_000, test3 type 6, alone and in batches of 2 and 5 (copies of it): the oracle's actions are the same bit
     for bit. Before the IK padded batches of 1 and 2 (jax_ik.MIN_BATCH) they drifted 1 ulp apart after 65 steps."""
-    from partinstruct_mjx.tasks.episodes import Episode
-    from partinstruct_mjx.tasks.skills import SkillStep
-
-    chain = (SkillStep("touch_obj", "back"), SkillStep("move_gripper", None, "front", touching=True),
-             SkillStep("release_obj"))
-    episode = Episode("bottle", "bottle_000", 3000115, 6, "test3", chain, "", ("",) * 3,
-                      (0.0, 0.0, -0.9731209475703041, 0.230294640406314, -0.03212594378940533, 0.1590563930549288,
-                       0.0), 1.0, 2167094895)
-    xml = assets_root() / "objects" / "bottle" / "bottle_000" / "object.xml"
+    episode, xml = _bottle_push_episode()
     actions = {}
     for size in (1, 2, 5):
         with PartInstructEnv(xml, size, EnvConfig(skill_mode=True)) as env:

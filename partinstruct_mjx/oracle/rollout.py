@@ -188,9 +188,8 @@ def run_oracle(env: PartInstructEnv, episodes: list, key: jax.Array, record: boo
     scene whose episode ended takes the next one. `success` is the task success at the step the episode ended. The
     oracle's random draws come from `key` folded with each episode's seed, so an episode's outcome depends neither on
     its scene nor on the episodes beside it, and with JAX on a CPU not on the batch size (jax_ik.MIN_BATCH;
-    tests/test_oracle.py). A failed grasp or touch and
-    what follows it is tried up to `tries` times from the state before it (backtrack.py); the recording holds the
-    episode's steps along the tries that stood.
+    tests/test_oracle.py). A failed grasp or touch and what follows it is tried up to `tries` times from the state
+    before it (backtrack.py); the recording holds the episode's steps along the tries that stood.
     """
     if not episodes:
         return
