@@ -101,9 +101,9 @@ def test_a_touch_point_is_free_when_the_fingertip_path_is_clear():
     points = np.array([[0.0, 0.0, 0.0], [0.04, 0.0, 0.0], [0.08, 0.0, 0.0]], np.float32)
     up, side = np.array([0.0, 0.0, 1.0], np.float32), np.array([1.0, 0.0, 0.0], np.float32)
     valid = np.ones(len(roof), bool)
-    assert np.asarray(candidates.clear_rays(points, up, roof.astype(np.float32), valid)).tolist() == [False, False,
-                                                                                                     True]
-    assert np.asarray(candidates.clear_rays(points, side, roof.astype(np.float32), valid)).all()
+    assert np.asarray(pushing.clear_rays(points, up, roof.astype(np.float32), valid)).tolist() == [False, False,
+                                                                                                  True]
+    assert np.asarray(pushing.clear_rays(points, side, roof.astype(np.float32), valid)).all()
 
 
 def test_a_keyboard_under_an_open_lid_is_touched_from_above(episodes):
@@ -503,6 +503,24 @@ def test_push_point_presses_low_on_the_face_opposite_the_push_near_the_middle(ep
     assert np.linalg.norm(lateral[:2]) < 0.02
 
 
+def test_a_part_sunk_inside_another_has_no_push_point():
+    # A screen plate 2 cm thick standing on the table (y in [0, 0.2], 15 cm tall), and a frame 1.3 cm wider and taller
+    # all round it, as display_000's: pushing the screen along -y, the fingertip at the screen's +y edge meets the
+    # frame's edge first, so no way in to the screen is open; the bare plate has one, and so has the frame.
+    plate = _wall(np.linspace(-0.01, 0.01, 5), np.linspace(0.0, 0.2, 41), np.linspace(0.06, 0.21, 31))
+    frame = _wall(np.linspace(-0.01, 0.01, 5), np.linspace(-0.013, 0.213, 46), np.linspace(0.06, 0.223, 33))
+    frame = frame[(np.abs(frame[:, 1] - 0.1) > 0.1) | (frame[:, 2] > 0.21)]
+    push = jnp.array([0.0, -1.0, 0.0])
+
+    def found(part, others):
+        whole = np.concatenate([part, others]) if len(others) else part
+        return bool(pushing.push_point(part, np.ones(len(part), bool), whole, np.ones(len(whole), bool), push)[1])
+
+    assert found(plate, np.zeros((0, 3), np.float32))
+    assert not found(plate, frame)
+    assert found(frame, plate)
+
+
 @pytest.mark.slow
 def test_a_grasp_without_candidates_is_sampled_again_then_fails():
     # A laptop's keyboard, flush in its base, has no grasp the hand can make: every plan comes back empty. Each empty
@@ -590,7 +608,7 @@ def test_a_touchs_hand_comes_in_clear_of_the_object():
     valid = np.ones(len(screen), bool)
     point = jnp.array([0.05, 0.0, 0.15])
     tilted = jnp.array([-np.cos(0.8), 0.0, -np.sin(0.8)], jnp.float32)  # coming down from +x along the screen
-    assert bool(candidates.clear_rays(point[None], -tilted, screen, valid)[0])
+    assert bool(pushing.clear_rays(point[None], -tilted, screen, valid)[0])
     # The hand, 23 cm wide along the closing axis (y), meets the screen's upper part behind the fingertip ...
     assert bool(candidates.touch_hand_blocked(point, tilted, candidates.TOP_X, screen, valid))
     # ... but not when it comes level from the screen's free side (-y).

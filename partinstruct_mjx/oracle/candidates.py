@@ -331,11 +331,6 @@ TOUCH_DEPTH = 0.004
 """How far past the touch point the fingertip is aimed (the touch skill stops as soon as TOUCHING holds)."""
 TOUCH_POINTS = 256
 """Part points (evenly strided) a touch chooses from."""
-TOUCH_RAY_RADIUS = 0.012
-TOUCH_RAY_START = 0.005
-TOUCH_RAY_LENGTH = 0.12
-"""A touch point is free when no object point lies within TOUCH_RAY_RADIUS (about the closed fingertips' half width)
-of the line the fingertip comes in along, from TOUCH_RAY_START to TOUCH_RAY_LENGTH (m) out from the point."""
 MIN_TOUCH_HEIGHT = 0.02
 """Lowest touch point above the table (m): the closed fingertips are about 2.5 cm wide."""
 LOW_TOUCH_HEIGHT = 0.10
@@ -365,8 +360,8 @@ def touch_candidates(object_points, object_valid, part_points, part_valid, push_
         # (below); of those, the ones within pushing.FACE_BAND of the farthest out towards the side (the part's face
         # on that side, or what is open of it): a display's stand plate, low and farthest out, hid its screen's side.
         high = is_top | _side_touch_clears_table(points[:, 2], tilt)
-        free = pushing_module.face(points, valid & high & clear_rays(points, -z_axis, object_points, object_valid),
-                                   side)
+        clear = pushing_module.clear_rays(points, -z_axis, object_points, object_valid)
+        free = pushing_module.face(points, valid & high & clear, side)
         # Before a push the fingertip goes where the push will press (pushing.py: low, near the object's middle, on
         # the face towards the pusher); other touches take the free point nearest the part's centre, of those whose
         # hand comes in clear of the object first.
@@ -415,18 +410,6 @@ def touch_hand_blocked(point, z_axis, top_x, object_points, object_valid):
     inside = ((t < -HAND_BACK) & (t > -HAND_BACK - PREGRASP_DISTANCE - 0.06) & (jnp.abs(u) < HAND_HALF_WIDTH)
               & (jnp.abs(v) < HAND_HALF_LENGTH))
     return (object_valid & inside).any()
-
-
-def clear_rays(points, ray, object_points, object_valid):
-    """(M,) whether the ray from each point along the unit `ray` is clear of the object: no object point lies within
-    TOUCH_RAY_RADIUS of it between TOUCH_RAY_START (the point's own surface) and TOUCH_RAY_LENGTH."""
-    along = object_points @ ray - (points @ ray)[:, None]
-    squared = (jnp.sum(object_points ** 2, -1)[None] + jnp.sum(points ** 2, -1)[:, None]
-               - 2.0 * points @ object_points.T)
-    lateral = squared - along ** 2
-    blocked = (object_valid[None] & (along > TOUCH_RAY_START) & (along < TOUCH_RAY_LENGTH)
-               & (lateral < TOUCH_RAY_RADIUS ** 2))
-    return ~blocked.any(axis=1)
 
 
 def touch_axes(z_axis: jnp.ndarray, top_x=TOP_X) -> tuple[jnp.ndarray, jnp.ndarray, jnp.ndarray]:

@@ -5,7 +5,8 @@ above the table with the object about to slide, the object tips over its leading
 TABLE_FRICTION * h < the horizontal distance from its centre of mass to that edge. A push off the line through the
 object's middle turns it. So a push point is a point of the touched part on its face towards the pusher, at least
 TIP_CLEARANCE above the table (the closed pads' round tips), close to the line through the middle along the push,
-and low enough not to tip the object (with a margin); the lowest such point, nearest that line, is taken.
+and low enough not to tip the object (with a margin); the lowest such point, nearest that line, is taken. A part
+can be pushed there only where the fingertip has a way in to it clear of the rest of the object.
 Used by episode generation (can this part be pushed this way?) and by the oracle (where to touch and push).
 Pure JAX for one object; numpy inputs are fine.
 """
@@ -33,10 +34,20 @@ MIN_CENTRAL_POINTS = 3
 pose the task was drawn for)."""
 BASE_BAND = 0.01
 """Object points this close (m) to its lowest point make up its footprint on the table."""
+TOUCH_RAY_RADIUS = 0.012
+TOUCH_RAY_START = 0.005
+TOUCH_RAY_LENGTH = 0.12
+"""A touch point is free when no object point lies within TOUCH_RAY_RADIUS (about the closed fingertips' half width)
+of the line the fingertip comes in along, from TOUCH_RAY_START to TOUCH_RAY_LENGTH (m) out from the point."""
+APPROACH_TILTS = (0.0, 0.8)
+"""Tilts (rad, down from horizontal) of the fingertip's ways in to a push point from the pusher's side: one must be
+open (`open_way`). A display's screen sunk 1.3 cm inside its frame had its push point on its edge, where only the
+frame around it could be pushed and TOUCHING the screen never held."""
 
 
 def push_point(part_points, part_valid, object_points, object_valid, direction):
-    """The push point (3,) on the part for a push along the horizontal unit `direction`, and whether one exists.
+    """The push point (3,) on the part for a push along the horizontal unit `direction`, and whether it is usable
+    (enough central points, and a way in to it clear of the object).
 
     Points are world-frame (M, 3) with validity masks (M,).
     """
@@ -57,7 +68,34 @@ def push_point(part_points, part_valid, object_points, object_valid, direction):
     # The point is the lowest, most central usable one even when none is central enough (the object may have
     # turned a little since the task was drawn); whether one is, is what the slot rules ask.
     best = jnp.argmin(jnp.where(usable, height + 2.0 * lateral, jnp.inf))
-    return part_points[best], central.sum() >= MIN_CENTRAL_POINTS
+    point = part_points[best]
+    ways_in = [-jnp.cos(t) * direction + jnp.sin(t) * jnp.array([0.0, 0.0, 1.0]) for t in APPROACH_TILTS]
+    way_open = jnp.stack([open_way(point, ray, part_points, part_valid, object_points, object_valid)
+                          for ray in ways_in]).any()
+    return point, (central.sum() >= MIN_CENTRAL_POINTS) & way_open
+
+
+def open_way(point, ray, part_points, part_valid, object_points, object_valid):
+    """Whether the fingertip's way in to `point` of the part, along the unit `ray` out of it (not vertical), is clear
+    of the object beyond the part's own face that way (the point may lie up to FACE_BAND behind that face)."""
+    outward = ray * jnp.array([1.0, 1.0, 0.0])
+    outward = outward / jnp.linalg.norm(outward)
+    behind_face = jnp.where(part_valid, part_points @ outward, -jnp.inf).max() - point @ outward
+    start = TOUCH_RAY_START + behind_face / (ray @ outward)
+    return clear_rays(point[None], ray, object_points, object_valid, start=start)[0]
+
+
+def clear_rays(points, ray, object_points, object_valid, start=TOUCH_RAY_START):
+    """(M,) whether the ray from each point along the unit `ray` is clear of the object: no object point lies within
+    TOUCH_RAY_RADIUS of it between `start` (default TOUCH_RAY_START, past the point's own surface) and
+    TOUCH_RAY_LENGTH."""
+    along = object_points @ ray - (points @ ray)[:, None]
+    squared = (jnp.sum(object_points ** 2, -1)[None] + jnp.sum(points ** 2, -1)[:, None]
+               - 2.0 * points @ object_points.T)
+    lateral = squared - along ** 2
+    blocked = (object_valid[None] & (along > start) & (along < TOUCH_RAY_LENGTH)
+               & (lateral < TOUCH_RAY_RADIUS ** 2))
+    return ~blocked.any(axis=1)
 
 
 def face(points, valid, toward):
