@@ -1121,26 +1121,29 @@ def test_a_pinch_on_thin_blades_holds_with_the_contact_split():
 
 @pytest.mark.slow
 def test_an_episode_no_attempt_solves_reports_its_furthest_attempt():
-    """display_007, test4 type 14 (touch, push, release, grasp, turn on the table): its first attempt pushes and fails
-    the grasp (skill 3), and no try of the grasp or of the touch before it solves the episode. The episode reports
-    the furthest attempt, the first (tries [0, 0], the grasp), which the evaluation's look-ahead then replays. (It
-    was display_007's type-16 episode 4000029 until that one's first attempt succeeded; an episode reporting
-    its last attempt had reported a touch failure, and evaluation counted one.)"""
+    """display_007, test4 type 16 (touch, push, release, grasp, lift, turn in the air, put down): its first attempt
+    pushes and fails the grasp (skill 3), and no try solves the episode; the grasp's fourth try gets furthest, to the
+    put-down (skill 6). The episode reports that attempt (tries [0, 3]), which the evaluation's look-ahead then
+    replays. (It was display_007's type-14 episode 4000054 until a push-point rule let one of its tries succeed, and
+    4000029 before that; an episode reporting its last attempt had reported a touch failure, and evaluation counted
+    one.)"""
     from partinstruct_mjx.tasks.episodes import Episode
     from partinstruct_mjx.tasks.skills import SkillStep
 
-    chain = (SkillStep("touch_obj", "base support"), SkillStep("move_gripper", None, "front", touching=True),
-             SkillStep("release_obj"), SkillStep("grasp_obj", "back"), SkillStep("rotate_obj", "left", "back"))
-    episode = Episode("display", "display_007", 4000054, 14, "test4", chain, "", ("",) * 5,
-                      (0.0, 0.0, 0.13778517178637398, 0.9904621378103251, 0.0680052343926415, 0.06894132992829498,
-                       0.0), 1.0, 2619480277)
+    chain = (SkillStep("touch_obj", "left"), SkillStep("move_gripper", None, "right", touching=True),
+             SkillStep("release_obj"), SkillStep("grasp_obj", "top"),
+             SkillStep("move_gripper", None, "top", grasping=True), SkillStep("rotate_obj", "frame", "bottom"),
+             SkillStep("move_gripper", None, "bottom", grasping=True, put_down=True))
+    episode = Episode("display", "display_007", 4000293, 16, "test4", chain, "", ("",) * 7,
+                      (0.0, 0.0, 0.6566541788081777, 0.7541918121099949, 0.01505087945082445, 0.03174799522354972,
+                       0.0), 1.0, 3842376004)
     xml = assets_root() / "objects" / "display" / "display_007" / "object.xml"
     with PartInstructEnv(xml, 1, EnvConfig(skill_mode=True)) as env:
         (first,) = run_oracle(env, [episode], jax.random.PRNGKey(0), record=False, tries=1)
         (searched,) = run_oracle(env, [episode], jax.random.PRNGKey(0), record=False, tries=6)
     assert (first.success, first.failed_skill) == (False, 3)
     assert not searched.success and searched.simulated_steps > 5 * first.simulated_steps
-    assert searched.failed_skill == 3 and list(searched.segment_tries[:2]) == [0, 0]
+    assert searched.failed_skill == 6 and list(searched.segment_tries[:2]) == [0, 3]
 
 
 def test_a_push_approach_times_out_only_near_the_push_point_and_stops_once_pushed_far_enough():
