@@ -513,7 +513,7 @@ def test_a_part_sunk_inside_another_has_no_push_point():
     push = jnp.array([0.0, -1.0, 0.0])
 
     def found(part, others):
-        whole = np.concatenate([part, others]) if len(others) else part
+        whole = np.concatenate([part, others])
         return bool(pushing.push_point(part, np.ones(len(part), bool), whole, np.ones(len(whole), bool), push)[1])
 
     assert found(plate, np.zeros((0, 3), np.float32))
