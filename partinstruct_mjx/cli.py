@@ -94,7 +94,10 @@ def main(argv: list[str] | None = None) -> int:
     bench.add_argument("--threads", type=int, default=None, help="worker threads/processes (default: all cores)")
     bench.add_argument("--oracle-tries", type=int, nargs="+", default=None, metavar="N",
                        help="demos and eval suites: the oracle's tries per grasp or touch to measure, side by side "
-                            "(default: the default of `partinstruct demos` and `eval`, 6)")
+                            "(default: the default of `partinstruct demos` and `eval`, 10)")
+    bench.add_argument("--oracle-restarts", type=int, nargs="+", default=None, metavar="N",
+                       help="demos suite: times an episode whose tries all failed starts over, to measure side by "
+                            "side (default: the default of `partinstruct demos`, 2)")
     bench.add_argument("--workers", type=int, nargs="+", default=None, metavar="N",
                        help="demos and eval suites: objects simulated at once (threads) to measure, side by side "
                             "(default: the default of `partinstruct demos` and `eval`, 2 on the mujoco backend)")
@@ -313,19 +316,22 @@ def _bench_demos(args, on_table) -> str:
 
     from partinstruct_mjx.bench import demos
     from partinstruct_mjx.jax_setup import enable_compilation_cache
-    from partinstruct_mjx.oracle.backtrack import SEGMENT_TRIES
+    from partinstruct_mjx.oracle.backtrack import RESTARTS, SEGMENT_TRIES
     from partinstruct_mjx.workers import default_workers
 
     cache = enable_compilation_cache()
     episodes = demos.bench_episodes(args.episodes or demos.DEFAULT_EPISODES)
     device = f"{jax.default_backend()} ({jax.devices()[0].device_kind})"
     results = []
-    for batch, tries, workers in itertools.product(args.batch_sizes or [16], args.oracle_tries or [SEGMENT_TRIES],
-                                                   args.workers or [default_workers(args.backend)]):
+    for batch, tries, restarts, workers in itertools.product(args.batch_sizes or [16],
+                                                             args.oracle_tries or [SEGMENT_TRIES],
+                                                             args.oracle_restarts or [RESTARTS],
+                                                             args.workers or [default_workers(args.backend)]):
         result = demos.measure(episodes, batch, args.repeats, args.threads, backend=args.backend, oracle_tries=tries,
-                               workers=workers)
+                               workers=workers, oracle_restarts=restarts)
         results.append(result)
-        print(f"batch {batch:>3}, oracle tries {tries}, workers {workers}: {result.demos_per_hour:>9,.0f} demos/hour, "
+        print(f"batch {batch:>3}, oracle tries {tries}, restarts {restarts}, workers {workers}: "
+              f"{result.demos_per_hour:>9,.0f} demos/hour, "
               f"{result.episodes_per_s:.2f} episodes/s, "
               f"{result.env_steps_per_s:,.0f} env steps/s, oracle success {result.successes}/{result.episodes}, "
               f"compile {result.compile_s:.1f} s")

@@ -43,6 +43,7 @@ def test_bench_demos_keeps_the_rows_of_a_run_stopped_midway(tmp_path, monkeypatc
     """The demos suite rewrites its section after every row: a run interrupted during its second row (a device
     call's time limit) leaves the first one written."""
     from partinstruct_mjx.bench import demos
+    from partinstruct_mjx.oracle import backtrack
 
     real_measure, calls = demos.measure, []
 
@@ -59,7 +60,7 @@ def test_bench_demos_keeps_the_rows_of_a_run_stopped_midway(tmp_path, monkeypatc
               "--output", str(report)])
     assert calls == [1, 4]
     rows = [line for line in report.read_text().splitlines() if line.startswith("| 2 |")]
-    assert len(rows) == 1 and rows[0].startswith("| 2 | 1 | 2 |")
+    assert len(rows) == 1 and rows[0].startswith(f"| 2 | 1 | {backtrack.RESTARTS} | 2 |")
     # A CPU run's section names the core count: a GPU machine's cores with JAX on the CPU get a section of their own.
     assert f"<!-- bench:demos_cpu{os.cpu_count()} -->" in report.read_text()
 
@@ -99,3 +100,12 @@ def test_help_states_the_oracle_tries_the_command_uses(command):
                          text=True)
     assert out.returncode == 0
     assert f"(default {SEGMENT_TRIES}, oracle/backtrack.py's SEGMENT_TRIES" in " ".join(out.stdout.split())
+
+
+def test_demos_help_states_the_oracle_restarts_it_uses():
+    from partinstruct_mjx.oracle.backtrack import RESTARTS
+
+    out = subprocess.run([sys.executable, "-m", "partinstruct_mjx.cli", "demos", "--help"], capture_output=True,
+                         text=True)
+    assert out.returncode == 0
+    assert f"(default {RESTARTS}, oracle/backtrack.py's RESTARTS" in " ".join(out.stdout.split())

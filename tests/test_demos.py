@@ -168,6 +168,8 @@ def test_other_settings_are_refused_for_an_existing_directory(metadata, run_dir,
     assert "env_args" in capsys.readouterr().err
     assert demos(metadata, run_dir, 2, "--oracle-tries", "1") == 2  # the run used the default, 4
     assert "env_args" in capsys.readouterr().err
+    assert demos(metadata, run_dir, 2, "--oracle-restarts", "0") == 2
+    assert "env_args" in capsys.readouterr().err
     # refused before anything is written, also the episode selection a run without --metadata keeps
     assert main(["demos", "--episodes", "2", "--seed", "1", "--out", str(run_dir), "--quiet"]) == 2
     assert "env_args" in capsys.readouterr().err
@@ -299,6 +301,7 @@ def test_a_large_selection_is_drawn_in_one_process_per_core(tmp_path, monkeypatc
                                            (["--types", "12"], "not in split train"),
                                            (["--categories", "teapot"], "unknown category"),
                                            (["--oracle-tries", "0"], "--oracle-tries must be >= 1"),
+                                           (["--oracle-restarts", "-1"], "--oracle-restarts must be >= 0"),
                                            (["--workers", "0"], "--workers must be >= 1")])
 def test_bad_input_exits_2(tmp_path, capsys, args, message):
     assert main(["demos", "--out", str(tmp_path / "out"), *args]) == 2

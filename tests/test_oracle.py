@@ -682,12 +682,13 @@ def test_a_grasp_counts_once_the_fingers_stop_a_touch_as_soon_as_it_holds():
 def test_backtracking_restores_a_scene_exactly_and_leaves_the_others(episodes):
     """A retried scene goes back to its saved physics, task and machine state (with a new random key) and, given the
     same actions again, repeats its steps exactly; the scene beside it goes on as if nothing happened. A segment that
-    spent its tries sends the scene back to the previous segment's next try."""
+    spent its tries sends the scene back to the previous segment's next try; an episode that spent them all starts
+    over with fresh draws."""
     batch = [e for e in episodes if e.obj_class == "mug"][:2]
     with _env(batch[0], 2) as env:
         state, policy = _started(env, batch)
         initial = state.data.qpos.copy()
-        search = backtrack.Backtracker(env, state, policy.state, tries=3)
+        search = backtrack.Backtracker(env, state, policy.state, tries=3, restarts=1)
         start = hold_action(np.asarray(state.obs["tcp_pose"]))
         actions = [start + [0.0, 0.0, -0.01 * k, 0, 0, 0, 0] for k in range(6)]
         first = []
@@ -721,7 +722,19 @@ def test_backtracking_restores_a_scene_exactly_and_leaves_the_others(episodes):
         assert int(state.info["steps"][0]) == 0 and search.saved_steps[0] == 0
         np.testing.assert_array_equal(state.data.qpos[0], initial[0])
         assert np.asarray(oracle.skip).tolist() == [2 * backtrack.TRY_SKIP, 0]
-        # The first segment has no try left.
+        # The first segment has no try left: the episode starts over, its tries numbered on, the first passing over
+        # no candidate of its fresh sample.
+        keys = {np.asarray(oracle.key[0]).tobytes()}
+        for restart_try in range(3):
+            state = env.step(state, actions[0])
+            rows, state, oracle = search.retry(failed, state, oracle)
+            assert rows.tolist() == [True, False] and search.chosen[0, :2].tolist() == [3 + restart_try, 0]
+            assert int(state.info["steps"][0]) == 0 and search.saved_steps[0] == 0
+            np.testing.assert_array_equal(state.data.qpos[0], initial[0])
+            assert np.asarray(oracle.skip).tolist() == [restart_try * backtrack.TRY_SKIP, 0]
+            keys.add(np.asarray(oracle.key[0]).tobytes())
+        assert len(keys) == 4
+        # Its one restart spent too, the episode has no try left.
         rows, _, _ = search.retry(failed, state, oracle)
         assert not rows.any()
 
@@ -1140,7 +1153,7 @@ def test_an_episode_no_attempt_solves_reports_its_furthest_attempt():
     xml = assets_root() / "objects" / "display" / "display_007" / "object.xml"
     with PartInstructEnv(xml, 1, EnvConfig(skill_mode=True)) as env:
         (first,) = run_oracle(env, [episode], jax.random.PRNGKey(0), record=False, tries=1)
-        (searched,) = run_oracle(env, [episode], jax.random.PRNGKey(0), record=False, tries=6)
+        (searched,) = run_oracle(env, [episode], jax.random.PRNGKey(0), record=False, tries=6, restarts=0)
     assert (first.success, first.failed_skill) == (False, 3)
     assert not searched.success and searched.simulated_steps > 5 * first.simulated_steps
     assert searched.failed_skill == 6 and list(searched.segment_tries[:2]) == [0, 3]

@@ -60,6 +60,8 @@ class DemosResult:
     backend: str = "mujoco"
     oracle_tries: int | None = None
     """Tries per grasp or touch segment (oracle/backtrack.py)."""
+    oracle_restarts: int | None = None
+    """Times an episode whose tries all failed starts over (oracle/backtrack.py)."""
     workers: int = 1
     """Objects simulated at once (synthesize's threads)."""
 
@@ -111,13 +113,13 @@ class DemosResult:
 
 def measure(episodes: list[Episode], batch_size: int, repeats: int, threads: int | None = None,
             sampler: str = "stride", backend: str = "mujoco", oracle_tries: int | None = None,
-            workers: int | None = None) -> DemosResult:
+            workers: int | None = None, oracle_restarts: int | None = None) -> DemosResult:
     """One cold and `repeats` warm synthesis runs of `episodes` into temporary directories (`oracle_tries`,
-    `workers`: None is `partinstruct demos`' default)."""
+    `oracle_restarts`, `workers`: None is `partinstruct demos`' default)."""
     import jax
 
     from partinstruct_mjx.data.synthesis import synthesize
-    from partinstruct_mjx.oracle.backtrack import SEGMENT_TRIES
+    from partinstruct_mjx.oracle.backtrack import RESTARTS, SEGMENT_TRIES
 
     runs = []
     with tempfile.TemporaryDirectory(prefix="partinstruct-bench-demos-") as tmp:
@@ -125,11 +127,12 @@ def measure(episodes: list[Episode], batch_size: int, repeats: int, threads: int
         for index in range(1 + repeats):
             summary = synthesize(episodes, Path(tmp) / f"run{index}", batch_size=batch_size, sampler=sampler,
                                  backend=backend, progress=False, num_threads=threads, oracle_tries=oracle_tries,
-                                 workers=workers)
+                                 workers=workers, oracle_restarts=oracle_restarts)
             runs.append(summary["run"])
     return DemosResult(batch_size, len(episodes), len({(e.obj_class, e.obj_id) for e in episodes}), runs[0], runs[1:],
                        runs[0]["successes"], threads or os.cpu_count() or 1, backend,
-                       SEGMENT_TRIES if oracle_tries is None else oracle_tries, runs[0]["workers"])
+                       SEGMENT_TRIES if oracle_tries is None else oracle_tries,
+                       RESTARTS if oracle_restarts is None else oracle_restarts, runs[0]["workers"])
 
 
 def _backend(result: DemosResult) -> str:
@@ -145,7 +148,7 @@ def markdown(results: list[DemosResult], episodes: list[Episode], device: str, c
         shares = r.shares()
         low, high = r.demos_per_hour_range
         rows.append(
-            f"| {r.batch_size} | {r.oracle_tries} | {r.workers} | {r.episodes} | "
+            f"| {r.batch_size} | {r.oracle_tries} | {r.oracle_restarts} | {r.workers} | {r.episodes} | "
             f"{r.successes} ({r.successes / r.episodes:.0%}) | "
             f"{r.demos_per_hour:,.0f} | {low:,.0f} - {high:,.0f} | {r.episodes_per_s:.2f} | {r.env_steps_per_s:,.0f} | "
             f"{r.scene_steps_per_s:,.0f} | {r.clouds_per_s:,.0f} | {r.wall_s:.1f} | {shares['rollout']:.0%} / "
@@ -160,15 +163,16 @@ def markdown(results: list[DemosResult], episodes: list[Episode], device: str, c
         f"their array shapes). Rates are "
         f"medians of {repeats} warm run(s) (one by default: a run takes minutes); 'compile' is the cold run's wall "
         f"time (in-process JAX caches cleared) minus the warm median, and the last column is the cold run's rate.\n\n"
-        "| batch | oracle tries | workers | episodes | demos (oracle success) | demos/hour | range | episodes/s | "
+        "| batch | oracle tries | restarts | workers | episodes | demos (oracle success) | demos/hour | range | episodes/s | "
         "env steps/s | scene steps/s | clouds/s | wall s | simulation+oracle / clouds / writing / envs | compile s | "
         "cold demos/hour |\n"
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n" + "\n".join(rows) + "\n\n"
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n" + "\n".join(rows) + "\n\n"
         "'workers' are the objects simulated at once, each in a thread with its own env and its share of the "
         "physics threads (`partinstruct demos --workers`); clouds and writing run in one more thread beside them, "
         "so the phases' shares of the wall time add up to more than 100 %. "
         "env steps/s counts each episode's own steps (those of its final demo or failure) per second of "
         "simulation+oracle (a worker's seconds: the seconds are summed over the workers); 'oracle tries' are its "
-        "tries per grasp or touch (1: no backtracking; `partinstruct demos --oracle-tries`); scene steps/s counts every step a scene took for an episode, the "
+        "tries per grasp or touch (1: no backtracking; `partinstruct demos --oracle-tries`), 'restarts' the "
+        "times an episode whose tries all failed starts over (`--oracle-restarts`; none with one try); scene steps/s counts every step a scene took for an episode, the "
         "tries that the oracle's backtracking undid included (scenes are streamed: one whose episode ended takes "
         "the next; at the end of an object's episodes the idle scenes are not counted).\n")

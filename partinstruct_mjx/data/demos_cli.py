@@ -14,8 +14,8 @@ DESCRIPTION = (
     "agentview_part_pcd (T, 1024, 4: xyz in the static camera's optical frame + target-part flag) from the JAX point "
     "renderer, tcp_pose, joint_states, gripper_state, object_pose, the 7-D absolute actions, the executing skill per "
     "step and the reset physics state. A failed grasp or touch and the skills after it are tried again from the "
-    "simulator state before it (--oracle-tries); a demo keeps only the try that worked, so it is one real trajectory "
-    "from the reset state. --episodes N spreads N episodes over every task type and category of the "
+    "simulator state before it (--oracle-tries), and an episode that every try failed starts over (--oracle-restarts); "
+    "a demo keeps only the try that worked, so it is one real trajectory from the reset state. --episodes N spreads N episodes over every task type and category of the "
     "split (generated from --seed exactly as `partinstruct episodes` does); --metadata uses an existing file instead.")
 
 EPILOG = """\
@@ -32,9 +32,9 @@ output (DIR):
 
 resume: every batch is committed atomically. Re-running the same command skips episodes already committed
 (successes and failures), so an interrupted run (Ctrl-C finalizes what was committed) continues where it stopped,
-and a larger --episodes adds only the new episodes. A directory remembers its backend, seed, sampler and
---oracle-tries and refuses different ones. The same episodes, --batch-size and --seed give the same demos, however
-often the run was interrupted (an episode's demo depends neither on its scene nor on the episodes beside it, and on
+and a larger --episodes adds only the new episodes. A directory remembers its backend, seed, sampler,
+--oracle-tries and --oracle-restarts and refuses different ones. The same episodes, --batch-size and --seed give
+the same demos, however often the run was interrupted (an episode's demo depends neither on its scene nor on the episodes beside it, and on
 the mujoco backend with JAX on a CPU not on --batch-size either).
 
 speed: each object category and batch size compiles the oracle and the env step once per process (seconds to tens
@@ -96,6 +96,9 @@ def add_demos_parser(subparsers) -> argparse.ArgumentParser:
                         help="tries per grasp or touch: a failed one and what follows it is tried again from the "
                              "state before it with other random draws (default 10, oracle/backtrack.py's "
                              "SEGMENT_TRIES; 1: no backtracking)")
+    parser.add_argument("--oracle-restarts", type=int, default=None, metavar="N",
+                        help="times an episode whose tries all failed starts over from its reset state with fresh "
+                             "draws (default 2, oracle/backtrack.py's RESTARTS; 0: never; none with --oracle-tries 1)")
     parser.add_argument("--assets", type=Path, default=None, metavar="DIR",
                         help="assets root with catalog.json (default: the built-in library)")
     parser.add_argument("--render-chunk", type=int, default=RENDER_CHUNK, metavar="N", help=argparse.SUPPRESS)
@@ -141,10 +144,13 @@ def run_demos(args: argparse.Namespace) -> int:
 
     if args.oracle_tries is not None and args.oracle_tries < 1:
         raise DataError(f"--oracle-tries must be >= 1, got {args.oracle_tries}")
+    if args.oracle_restarts is not None and args.oracle_restarts < 0:
+        raise DataError(f"--oracle-restarts must be >= 0, got {args.oracle_restarts}")
     if args.workers is not None and args.workers < 1:
         raise DataError(f"--workers must be >= 1, got {args.workers}")
     # before the selection is stored
-    check_env_args(args.out, env_args(args.backend, args.sampler, args.seed, args.oracle_tries))
+    check_env_args(args.out, env_args(args.backend, args.sampler, args.seed, args.oracle_tries,
+                                      args.oracle_restarts))
     if args.metadata is not None:
         episodes = select_episodes(args.split, args.episodes, args.seed, args.types, args.categories, args.metadata,
                                    args.assets)
@@ -156,7 +162,7 @@ def run_demos(args: argparse.Namespace) -> int:
         summary = synthesize(episodes, args.out, batch_size=args.batch_size, seed=args.seed, sampler=args.sampler,
                              backend=args.backend, progress=not args.quiet, assets=args.assets,
                              num_threads=args.threads, render_chunk=args.render_chunk, oracle_tries=args.oracle_tries,
-                             workers=args.workers)
+                             oracle_restarts=args.oracle_restarts, workers=args.workers)
     except KeyboardInterrupt:
         print(f"\ninterrupted: committed batches are finalized in {args.out}; run the same command again to resume",
               file=sys.stderr)

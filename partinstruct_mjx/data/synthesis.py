@@ -50,17 +50,20 @@ SELECTIONS_DIR = "selections"
 """Run-directory folder of generated episode selections (`remembered_selection`)."""
 
 
-def env_args(backend: str = "mujoco", sampler: str = "stride", seed: int = 0, oracle_tries: int | None = None) -> dict:
+def env_args(backend: str = "mujoco", sampler: str = "stride", seed: int = 0, oracle_tries: int | None = None,
+             oracle_restarts: int | None = None) -> dict:
     """The robomimic-style env_args of a run directory; a resumed run must match them (DemoWriter checks).
-    `oracle_tries`: tries per grasp or touch segment (oracle/backtrack.py; None: its SEGMENT_TRIES)."""
+    `oracle_tries`: tries per grasp or touch segment (oracle/backtrack.py; None: its SEGMENT_TRIES);
+    `oracle_restarts`: times an episode every try failed starts over (None: backtrack.RESTARTS; none with one try)."""
     from partinstruct_mjx.env import STEP_LIMIT, STEP_LIMIT_TEST4
-    from partinstruct_mjx.oracle.backtrack import SEGMENT_TRIES
+    from partinstruct_mjx.oracle.backtrack import RESTARTS, SEGMENT_TRIES
 
     return {"env_name": ENV_NAME, "type": "partinstruct_mjx",
             "env_kwargs": {"backend": backend, "skill_mode": False, "rotation": "euler", "control_freq": 20,
                            "step_limit": STEP_LIMIT, "step_limit_test4": STEP_LIMIT_TEST4},
             "synthesis": {"oracle": "partinstruct_mjx.oracle", "seed": seed,
                           "oracle_tries": SEGMENT_TRIES if oracle_tries is None else oracle_tries,
+                          "oracle_restarts": RESTARTS if oracle_restarts is None else oracle_restarts,
                           "pcd_sampler": sampler,
                           "pcd_camera": "agentview", "pcd_size": 1024}}
 
@@ -88,13 +91,14 @@ class Timing:
 def synthesize(episodes: list[Episode], out_dir: str | os.PathLike, batch_size: int = 16, seed: int = 0,
                sampler: str = "stride", backend: str = "mujoco", progress: bool = True,
                assets: str | os.PathLike | None = None, num_threads: int | None = None,
-               render_chunk: int = RENDER_CHUNK, oracle_tries: int | None = None, workers: int | None = None) -> dict:
+               render_chunk: int = RENDER_CHUNK, oracle_tries: int | None = None, workers: int | None = None,
+               oracle_restarts: int | None = None) -> dict:
     """Run the oracle on `episodes` (skipping those already committed in `out_dir`) and store the successful demos.
 
     Returns the run directory's summary (see DemoWriter.finalize) plus 'run': this call's counts and its Timing.
     On KeyboardInterrupt the committed batches are finalized before the interrupt is re-raised. A demo's
     initial_state is the MuJoCo physics state after reset; the mjx backend has none, so there it is the first
-    step's joint_states, gripper_state and object_pose. `oracle_tries`: see `env_args`. `workers`: objects
+    step's joint_states, gripper_state and object_pose. `oracle_tries`, `oracle_restarts`: see `env_args`. `workers`: objects
     simulated at once, each in its own thread and env with `num_threads` (default: the cores) // workers physics
     threads (None: `default_workers`); a run's demos do not depend on it.
     """
@@ -108,6 +112,8 @@ def synthesize(episodes: list[Episode], out_dir: str | os.PathLike, batch_size: 
         raise DataError(f"unknown point-cloud sampler '{sampler}'; expected one of {', '.join(SAMPLERS)}")
     if oracle_tries is not None and oracle_tries < 1:
         raise DataError(f"oracle_tries must be >= 1, got {oracle_tries}")
+    if oracle_restarts is not None and oracle_restarts < 0:
+        raise DataError(f"oracle_restarts must be >= 0, got {oracle_restarts}")
     if workers is not None and workers < 1:
         raise DataError(f"workers must be >= 1, got {workers}")
     counts = Counter(e.ep_id for e in episodes)
@@ -116,7 +122,7 @@ def synthesize(episodes: list[Episode], out_dir: str | os.PathLike, batch_size: 
         raise DataError(f"episode {repeated[0]} is given more than once")
     root = Path(assets) if assets is not None else assets_root()
     objects = object_paths(episodes, root)
-    args = env_args(backend, sampler, seed, oracle_tries)
+    args = env_args(backend, sampler, seed, oracle_tries, oracle_restarts)
     writer = DemoWriter(out_dir, args)
     done = writer.finished_ids()
     todo = [e for e in episodes if e.ep_id not in done]
@@ -147,7 +153,7 @@ def synthesize(episodes: list[Episode], out_dir: str | os.PathLike, batch_size: 
         """Simulate one object's episodes (until the run stops); commit each finished batch."""
         key, mine = group
         worker = _ObjectWorker(objects[key], _bucket(len(mine), batch_size), backend, threads_each,
-                               args["synthesis"]["oracle_tries"])
+                               args["synthesis"]["oracle_tries"], args["synthesis"]["oracle_restarts"])
         pending = None
         try:
             for batch in worker.run(mine, jax.random.PRNGKey(seed), sampler, render_chunk, stop):
@@ -238,14 +244,15 @@ class _Finished:
 class _ObjectWorker:
     """One env (and point-cloud surface) of one object and batch size, reused for all its batches."""
 
-    def __init__(self, object_xml: Path, batch_size: int, backend: str, num_threads: int | None, oracle_tries: int):
+    def __init__(self, object_xml: Path, batch_size: int, backend: str, num_threads: int | None, oracle_tries: int,
+                 oracle_restarts: int):
         from partinstruct_mjx.env import EnvConfig, PartInstructEnv
         from partinstruct_mjx.obs import point_renderer
         from partinstruct_mjx.obs.cameras import AGENTVIEW, scene_camera
 
         tick = time.perf_counter()
         self.batch_size = batch_size
-        self.oracle_tries = oracle_tries
+        self.oracle_tries, self.oracle_restarts = oracle_tries, oracle_restarts
         self.env = PartInstructEnv(object_xml, batch_size,
                                    EnvConfig(backend=backend, skill_mode=False, num_threads=num_threads))
         self.surface = point_renderer.surface_points(self.env.scene, self.env.geometry)
@@ -264,7 +271,8 @@ class _ObjectWorker:
         rollout_key, cloud_key = jax.random.split(key)
         finished, ended = [], 0
         tick = time.perf_counter()
-        for episode in run_oracle(self.env, episodes, rollout_key, record=True, tries=self.oracle_tries):
+        for episode in run_oracle(self.env, episodes, rollout_key, record=True, tries=self.oracle_tries,
+                                  restarts=self.oracle_restarts):
             if stop.is_set():
                 return
             finished.append(episode)

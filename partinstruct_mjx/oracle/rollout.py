@@ -87,7 +87,8 @@ class OraclePolicy:
     With `lookahead_tries` > 1 it plans each batch first in a private copy of the env (same object, batch and
     config, reset with the same key): `run_oracle` there backtracks failed grasps and touches (backtrack.py), and
     the policy then makes, at each segment's start, the random draws of the try that stood. The env itself is never
-    rewound; on the deterministic C MuJoCo backend it repeats the copy's steps exactly."""
+    rewound; on the deterministic C MuJoCo backend it repeats the copy's steps exactly. The look-ahead does not start
+    an episode over (`run_oracle`'s restarts): the evaluation's figures in docs/evaluation.md are measured without."""
 
     def __init__(self, lookahead_tries: int = 1):
         self.lookahead_tries = lookahead_tries
@@ -101,10 +102,10 @@ class OraclePolicy:
         if self.lookahead_tries > 1:
             self._choices = np.zeros((env.batch_size, progress.MAX_SKILLS), np.int32)
             for episode in run_oracle(self._private_copy(env), env.episodes, key, record=False,
-                                      tries=self.lookahead_tries):
+                                      tries=self.lookahead_tries, restarts=0):
                 self._choices[episode.index] = episode.segment_tries
             self._segment = np.zeros(env.batch_size, np.int32)
-            self.state = backtrack.with_try(self.state, self._choices[:, 0])
+            self.state = backtrack.with_try(self.state, self._choices[:, 0], self.lookahead_tries)
 
     def fork(self) -> OraclePolicy:
         """An oracle for another worker thread (its own machine state and look-ahead copy)."""
@@ -148,7 +149,7 @@ class OraclePolicy:
             if starts.any():
                 self._segment = np.minimum(self._segment + starts, self._choices.shape[1] - 1)
                 tries = np.where(starts, self._choices[np.arange(len(starts)), self._segment], 0)
-                self.state = backtrack.with_try(self.state, tries)
+                self.state = backtrack.with_try(self.state, tries, self.lookahead_tries)
         return action
 
 
@@ -181,7 +182,7 @@ def _initial_machine(env: PartInstructEnv, state, key: jax.Array) -> machine.Ora
 
 
 def run_oracle(env: PartInstructEnv, episodes: list, key: jax.Array, record: bool = True,
-               tries: int = backtrack.SEGMENT_TRIES) -> Iterator[OracleEpisode]:
+               tries: int = backtrack.SEGMENT_TRIES, restarts: int = backtrack.RESTARTS) -> Iterator[OracleEpisode]:
     """Run `episodes` (any number) through `env`'s scenes and yield each one's `OracleEpisode` as it ends.
 
     The first B episodes start at reset (fewer fill the batch by repeating, and the repeats are not reported); a
@@ -189,7 +190,8 @@ def run_oracle(env: PartInstructEnv, episodes: list, key: jax.Array, record: boo
     oracle's random draws come from `key` folded with each episode's seed, so an episode's outcome depends neither on
     its scene nor on the episodes beside it, and with JAX on a CPU not on the batch size (jax_ik.MIN_BATCH;
     tests/test_oracle.py). A failed grasp or touch and what follows it is tried up to `tries` times from the state
-    before it (backtrack.py); the recording holds the episode's steps along the tries that stood.
+    before it, and an episode that every try failed starts over up to `restarts` times (backtrack.py); the recording
+    holds the episode's steps along the tries that stood.
     """
     if not episodes:
         return
@@ -203,7 +205,7 @@ def run_oracle(env: PartInstructEnv, episodes: list, key: jax.Array, record: boo
     del pending[:batch]
     policy = OraclePolicy()
     policy.reset(env, state, key)
-    search = backtrack.Backtracker(env, state, policy.state, tries)
+    search = backtrack.Backtracker(env, state, policy.state, tries, restarts)
     surface = point_renderer.surface_points(env.scene, env.geometry) if record else None
     length = np.zeros(batch, np.int32)
     simulated = np.zeros(batch, np.int32)
