@@ -391,12 +391,14 @@ def test_a_push_in_a_skill_mode_env_ends_when_the_env_counts_it():
 
 
 @pytest.mark.slow
-def test_an_episode_acts_the_same_in_batches_of_any_size():
-    """bottle_000, test3 type 6, alone and in batches of 2 and 5 (copies of it): the oracle's actions are the same bit
-    for bit. Before the IK padded batches of 1 and 2 (jax_ik.MIN_BATCH) they drifted 1 ulp apart after 65 steps."""
+def test_an_episode_acts_the_same_in_the_smallest_batches():
+    """bottle_000, test3 type 6, alone and in batches of 2 and 4 (copies of it): the oracle's actions are the same bit
+    for bit. Before the IK padded batches of 1 and 2 to 4 rows (jax_ik.MIN_BATCH) they drifted 1 ulp apart after 65
+    steps. (In a batch of 5 it matched too on an earlier machine; on an AVX2-only EPYC it acts 1 ulp away there after
+    about 70 steps: XLA vectorises each batch shape its own way.)"""
     episode, xml = _bottle_push_episode()
     actions = {}
-    for size in (1, 2, 5):
+    for size in (1, 2, 4):
         with PartInstructEnv(xml, size, EnvConfig(skill_mode=True)) as env:
             state = env.reset(jax.random.PRNGKey(0), [episode] * size)
             policy = OraclePolicy()
@@ -408,8 +410,8 @@ def test_an_episode_acts_the_same_in_batches_of_any_size():
                 state = env.step(state, action)
         actions[size] = np.stack(steps)
     for size in (1, 2):
-        np.testing.assert_array_equal(actions[size][:, 0], actions[5][:, 0])
-    np.testing.assert_array_equal(actions[5][:, 4], actions[5][:, 0])
+        np.testing.assert_array_equal(actions[size][:, 0], actions[4][:, 0])
+    np.testing.assert_array_equal(actions[4][:, 3], actions[4][:, 0])
 
 
 def test_the_first_move_of_a_task_mode_chain_starts_from_the_tasks_p0(episodes):

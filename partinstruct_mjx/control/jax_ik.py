@@ -266,7 +266,9 @@ def _solve_batch(kin: ArmKinematics, q_init: jnp.ndarray, target_pos: jnp.ndarra
 MIN_BATCH = 4
 """Smaller batches are solved padded to this many rows (their first row repeated): XLA on a CPU vectorises the
 batched solve differently for 1 or 2 rows, which then end 1 ulp away from the same rows solved in a larger batch, and
-an oracle episode run in a batch of 1 or 2 drifted from the same episode in a batch of 4 after 65 steps."""
+an oracle episode run in a batch of 1 or 2 drifted from the same episode in a batch of 4 after 65 steps. Larger
+batch shapes may round differently from each other too, depending on the CPU (on an AVX2-only EPYC a batch of 4 or 6
+rounds 1 ulp away from the same rows in a batch of 16, one of 5, 7, 8 or 12 does not)."""
 
 
 def solve_ik(kin: ArmKinematics, q_init: jnp.ndarray, target_pos: jnp.ndarray, target_quat: jnp.ndarray,

@@ -34,8 +34,9 @@ resume: every batch is committed atomically. Re-running the same command skips e
 (successes and failures), so an interrupted run (Ctrl-C finalizes what was committed) continues where it stopped,
 and a larger --episodes adds only the new episodes. A directory remembers its backend, seed, sampler,
 --oracle-tries and --oracle-restarts and refuses different ones. The same episodes, --batch-size and --seed give
-the same demos, however often the run was interrupted (an episode's demo depends neither on its scene nor on the episodes beside it, and on
-the mujoco backend with JAX on a CPU not on --batch-size either).
+the same demos, however often the run was interrupted (an episode's demo depends neither on its scene nor on the
+episodes beside it; another --batch-size can round the IK 1 ulp apart on some CPUs, and a grasp or push may amplify
+that).
 
 speed: each object category and batch size compiles the oracle and the env step once per process (seconds to tens
 of seconds; JAX's persistent cache in ~/.cache/partinstruct_mjx/jax shortens later runs), so short runs are
