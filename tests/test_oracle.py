@@ -1137,9 +1137,10 @@ def test_a_pinch_on_thin_blades_holds_with_the_contact_split():
 @pytest.mark.slow
 def test_an_episode_no_attempt_solves_reports_its_furthest_attempt():
     """display_007, test4 type 16 (touch, push, release, grasp, lift, turn in the air, put down): its first attempt
-    pushes and fails the grasp (skill 3), and no try solves the episode; the grasp's fourth try gets furthest, to the
-    put-down (skill 6). The episode reports that attempt (tries [0, 3]), which the evaluation's look-ahead then
-    replays. (It was display_007's type-14 episode 4000054 until a push-point rule let one of its tries succeed, and
+    pushes and fails the grasp (skill 3), and no try solves the episode; a middle try of the grasp gets furthest, to
+    the put-down (skill 6): its fourth on the forty-fourth session's machine, its fifth on an AVX2-only EPYC, whose
+    IK rounds otherwise. The episode reports that attempt, not the last one, and the evaluation's look-ahead then
+    replays it. (It was display_007's type-14 episode 4000054 until a push-point rule let one of its tries succeed, and
     4000029 before that; an episode reporting its last attempt had reported a touch failure, and evaluation counted
     one.)"""
     from partinstruct_mjx.tasks.episodes import Episode
@@ -1158,7 +1159,7 @@ def test_an_episode_no_attempt_solves_reports_its_furthest_attempt():
         (searched,) = run_oracle(env, [episode], jax.random.PRNGKey(0), record=False, tries=6, restarts=0)
     assert (first.success, first.failed_skill) == (False, 3)
     assert not searched.success and searched.simulated_steps > 5 * first.simulated_steps
-    assert searched.failed_skill == 6 and list(searched.segment_tries[:2]) == [0, 3]
+    assert searched.failed_skill == 6 and searched.segment_tries[0] == 0 and 0 < searched.segment_tries[1] < 5
 
 
 def test_a_push_approach_times_out_only_near_the_push_point_and_stops_once_pushed_far_enough():
