@@ -15,7 +15,8 @@ DESCRIPTION = (
     "renderer, tcp_pose, joint_states, gripper_state, object_pose, the 7-D absolute actions, the executing skill per "
     "step and the reset physics state. A failed grasp or touch and the skills after it are tried again from the "
     "simulator state before it (--oracle-tries), and an episode that every try failed starts over (--oracle-restarts); "
-    "a demo keeps only the try that worked, so it is one real trajectory from the reset state. --episodes N spreads N episodes over every task type and category of the "
+    "a demo keeps only the try that worked, so it is one real trajectory from the reset state. --episodes N spreads "
+    "N episodes over every task type and category of the "
     "split (generated from --seed exactly as `partinstruct episodes` does); --metadata uses an existing file instead.")
 
 EPILOG = """\

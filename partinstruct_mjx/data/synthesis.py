@@ -98,7 +98,8 @@ def synthesize(episodes: list[Episode], out_dir: str | os.PathLike, batch_size: 
     Returns the run directory's summary (see DemoWriter.finalize) plus 'run': this call's counts and its Timing.
     On KeyboardInterrupt the committed batches are finalized before the interrupt is re-raised. A demo's
     initial_state is the MuJoCo physics state after reset; the mjx backend has none, so there it is the first
-    step's joint_states, gripper_state and object_pose. `oracle_tries`, `oracle_restarts`: see `env_args`. `workers`: objects
+    step's joint_states, gripper_state and object_pose. `oracle_tries`, `oracle_restarts`: see `env_args`.
+    `workers`: objects
     simulated at once, each in its own thread and env with `num_threads` (default: the cores) // workers physics
     threads (None: `default_workers`); a run's demos do not depend on it.
     """

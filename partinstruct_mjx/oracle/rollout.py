@@ -189,9 +189,10 @@ def run_oracle(env: PartInstructEnv, episodes: list, key: jax.Array, record: boo
     scene whose episode ended takes the next one. `success` is the task success at the step the episode ended. The
     oracle's random draws come from `key` folded with each episode's seed, so an episode's outcome depends neither on
     its scene nor on the episodes beside it; with JAX on a CPU batches of 1 to 4 scenes act alike (jax_ik.MIN_BATCH;
-    tests/test_oracle.py), while other batch sizes may round the IK 1 ulp apart on some CPUs. A failed grasp or touch and what follows it is tried up to `tries` times from the state
-    before it, and an episode that every try failed starts over up to `restarts` times (backtrack.py); the recording
-    holds the episode's steps along the tries that stood.
+    tests/test_oracle.py), while other batch sizes may round the IK 1 ulp apart on some CPUs. A failed grasp or
+    touch and what follows it is tried up to `tries` times from the state before it, and an episode that every try
+    failed starts over up to `restarts` times (backtrack.py); the recording holds the episode's steps along the tries
+    that stood.
     """
     if not episodes:
         return
