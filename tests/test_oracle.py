@@ -899,6 +899,22 @@ def test_a_turn_fits_the_task_only_if_the_object_ends_near_where_it_was():
     assert bool(from_side.found) and bool(from_side.fits)
 
 
+def test_a_turn_about_the_hand_fits_the_task_only_if_the_arm_can_carry_the_object_back():
+    # A pot (radius 10 cm, 12 cm tall) held from above by the knob on its lid, 10 cm over its origin, its bottom to
+    # face the robot (+x). Turned about its origin the hand would point back at the robot from beyond the pot, out of
+    # reach; turned about the hand the pot swings 15 cm towards the robot, and carrying it back (the hand pointing at
+    # the robot, the pot's origin where it was) is out of reach too: the turn does not fit the task (kitchen_pot_006,
+    # type 8, episode 287: FACING held, AT never did).
+    origin = np.array([0.075, -0.026, 0.248])
+    points = np.concatenate([_cylinder(origin - [0.0, 0.0, 0.06], 0.10, 0.12, 6),
+                             _cylinder(origin + [0.0, 0.0, 0.06], 0.015, 0.04, 3)])
+    plan = _planned_turn(points, jnp.array(origin + [0.0, 0.0, 0.096], jnp.float32), jnp.array([0.0, 1.0, 0.0]),
+                         origin, [0.0, 0.0, -0.05], [1.0, 0.0, 0.0], on_table=False)
+    assert bool(plan.found)
+    np.testing.assert_allclose(np.asarray(plan.pivot), origin + [0.0, 0.0, 0.096], atol=1e-5)  # about the hand
+    assert not bool(plan.fits)
+
+
 def test_a_turn_before_a_put_down_may_leave_the_object_held_where_its_goal_holds():
     # A 4 x 4 x 20 cm bar held from above 7 cm over its middle, laid on its side in the air. Lying on the table its
     # origin would be 2 cm up instead of the 10 it rested at; but the hand, its closing axis turned upright, meets
@@ -971,9 +987,9 @@ def test_grasp_reach_is_checked_in_rank_order_chunk_by_chunk():
 def test_the_grasps_checked_for_an_air_turn_end_with_the_best_level_ones():
     score = jnp.asarray(np.linspace(3.0, 0.0, 60), jnp.float32)
     level = jnp.arange(60) % 10 == 9
-    plain = np.asarray(machine._candidate_pool(score, level, False))
+    plain = np.asarray(machine.candidate_pool(score, level, False))
     np.testing.assert_array_equal(plain, np.arange(machine.PLAN_CANDIDATES * machine.PLAN_CHUNKS))
-    turn = np.asarray(machine._candidate_pool(score, level, True))
+    turn = np.asarray(machine.candidate_pool(score, level, True))
     first = machine.PLAN_CANDIDATES * (machine.PLAN_CHUNKS - 1)
     np.testing.assert_array_equal(turn[:first], np.arange(first))
     np.testing.assert_array_equal(turn[first:first + 4], [19, 29, 39, 49])

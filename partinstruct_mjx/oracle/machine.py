@@ -110,7 +110,7 @@ the pads before the drop, so the ramp is not known to fix that cause."""
 TOUCH_TIPPING = 0.1
 """Radians a touch's approach may tilt the object before it backs off and takes the next candidate: the pads met a
 tall, light object (a display) before the fingertip reached the part, and pushing on tipped it over."""
-RECENTRE_START = 0.03
+RECENTRE_START = rotation.CARRY_BACK_START
 RECENTRE_DONE = 0.015
 RECENTRE_STEPS = 40
 RECENTRE_ACCELERATION = 0.001
@@ -331,7 +331,7 @@ def _plan_grasp(o: OracleState, data, geo: PartGeometry, kinematics, q):
                                           part_valid, sub, top_down_weight=jnp.where(
                                               table_turn, TABLE_TURN_TOP_DOWN_WEIGHT, candidates.TOP_DOWN_WEIGHT),
                                           lever_weight=jnp.where(air_turn, AIR_TURN_LEVER_WEIGHT, 0.0))
-    top = _candidate_pool(grasps["score"], jnp.abs(grasps["approach"][:, 2]) < LEVEL_APPROACH, air_turn)
+    top = candidate_pool(grasps["score"], jnp.abs(grasps["approach"][:, 2]) < LEVEL_APPROACH, air_turn)
     top_score = grasps["score"][top]
     approach, closing = grasps["approach"][top], grasps["closing"][top]
     # Both closing directions of each grasp (the hand turned half a turn about its axis), the one nearer the
@@ -464,7 +464,7 @@ LEVEL_BOOST = 100.0
 """Score added to level grasps to pick the last chunk of a chain with a turn in the air (more than any score)."""
 
 
-def _candidate_pool(score, level, air_turn):
+def candidate_pool(score, level, air_turn):
     """Indices of the grasps whose reach and outlook are checked, in rank order: the PLAN_CANDIDATES * (PLAN_CHUNKS
     - 1) best, then, for a chain that turns the object in the air, the best `level` ones (a level approach lets the
     wrist roll the object over in place; held from above, an object turned upside down ends above the hand, too high

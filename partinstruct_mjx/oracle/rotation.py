@@ -56,6 +56,13 @@ AT allows 0.08 from the origin before the lift)."""
 MAX_LIFT = 0.05
 """Height (m) above where it was that an object turned in the air may end and still meet the AT goal after the turn
 (0.08 m), with room for the carries' tolerance."""
+CARRY_BACK_START = 0.03
+"""A turn about the TCP that moves the object's origin more than this (m) is followed by a carry back (the machine's
+RECENTRE_START), which the arm must reach for the turn to fit the task."""
+CARRY_BACK_FRACTIONS = np.array([0.5, 1.0], np.float32)
+"""Points along the carry back where the IK must reach the TCP."""
+UNFIT_COST = 1.0
+"""Cost added to a turn that does not fit the task (TurnPlan.fits), so that one that does comes first."""
 UNSETTLED_COST = 5.0
 """Cost added to a turn after which the put-down cannot be made (more than the other costs of any turn that keeps
 the object within MAX_DISPLACEMENT)."""
@@ -219,6 +226,20 @@ def plan(kinematics, q, hand_pos, hand_quat, object_pos, object_points, object_v
             # Whether it can be made, and whether it ends with the object held above the table.
             return down_ok & (jnp.abs(ends_at - rested_at) < MAX_RESTING_CHANGE), descent < drop
 
+        def carried_back(lift):
+            # The arm must reach the hand's pose with the turned object's origin back in its place (the object turned
+            # about its origin, raised by `lift`), along the way from the turn's end.
+            end_pos, end_quat = turned_pose(pivot, axis, angle, 1.0, hand_pos, hand_quat)
+            end_pos = end_pos + raise_by * jnp.asarray(UP)
+            back_pos, _ = turned_pose(object_pos, axis, angle, 1.0, hand_pos, hand_quat)
+            back_pos = back_pos + lift * jnp.asarray(UP)
+
+            def carry(state, fraction):
+                return _reach_step(kinematics, *state, end_pos + fraction * (back_pos - end_pos), end_quat), None
+
+            (_, reached), _ = jax.lax.scan(carry, (joints, jnp.asarray(True)), jnp.asarray(CARRY_BACK_FRACTIONS))
+            return reached
+
         # Only a turn with a put-down after it pays for the check (a real branch where `settle` is not batched).
         settled, held = jax.lax.cond(settle, put_down, lambda: (jnp.asarray(True), jnp.asarray(False)))
         displacement = jnp.linalg.norm(turned_origin - object_pos) + raise_by
@@ -227,7 +248,10 @@ def plan(kinematics, q, hand_pos, hand_quat, object_pos, object_points, object_v
         # How far above where it was the object ends: raised with the hand about its origin, or, turned about the
         # TCP and carried back, as high as the turned hand and object must be with the origin back in its place.
         lift = jnp.where(on_table, 0.0, jnp.where(about_tcp, clearance_raise((1.0,), object_pos), raise_by))
-        return ok, cost, raise_by, joints, settled & (lift < MAX_LIFT)
+        fits = settled & (lift < MAX_LIFT) & jax.lax.cond(
+            about_tcp & ~on_table & (jnp.linalg.norm(turned_origin - object_pos) > CARRY_BACK_START),
+            lambda: carried_back(lift), lambda: jnp.asarray(True))
+        return ok, cost + jnp.where(fits, 0.0, UNFIT_COST), raise_by, joints, fits
 
     about_tcp = jnp.arange(2 * NUM_TWISTS) >= NUM_TWISTS
     ok, cost, raise_by, joints, fits = jax.vmap(evaluate)(axes, angles, pivots, about_tcp)
