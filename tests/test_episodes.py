@@ -356,6 +356,22 @@ def test_episodes_only_grasp_and_touch_where_the_arm_reaches():
         True, True, True, False]
 
 
+def test_episodes_turn_an_object_in_the_air_only_where_a_grasp_fits_the_turn():
+    # kitchen_pot_006 held by the knob on its lid, lifted, its base body to face the robot (episode 287 of the 880
+    # draw, type 8): every grasp on the knob swings the pot 15 cm off the AT goal or leaves the arm out of reach, so
+    # the task is not drawn. A bottle held by its cap, its bottom to face front (episode 35), has grasps that fit.
+    lift, turn = SkillStep("move_gripper", None, "top", grasping=True), "rotate_obj"
+    pot = str(assets_root() / "objects" / "kitchen_pot" / "kitchen_pot_006")
+    pot_chain = (SkillStep("grasp_obj", "top"), lift, SkillStep(turn, "base body", "back"))
+    assert not slot_rules.air_turn_fits(pot, 2.3607, (0.0737, -0.0252), pot_chain, 0)
+    assert not chain_reachable(pot, 2.3607, (0.0737, -0.0252), pot_chain)
+    bottle = str(assets_root() / "objects" / "bottle" / "bottle_000")
+    bottle_chain = (SkillStep("grasp_obj", "top"), lift, SkillStep(turn, "bottom", "front"))
+    assert slot_rules.air_turn_fits(bottle, 2.5782, (-0.0213, 0.1702), bottle_chain, 0)
+    # Without a turn in the air (a turn on the table, or none) there is nothing to check.
+    assert slot_rules.air_turn_fits(pot, 2.3607, (0.0737, -0.0252), pot_chain[:2], 0)
+
+
 def test_turns_on_the_table_only_for_parts_a_yaw_can_make_face_the_goal():
     # A standing bottle's 'front' lies 2.9 cm out and 2.5 cm below its origin: a yaw turn keeps that 0.71 rad
     # elevation, so FACING (0.5 rad) could never hold; 5 mm below, it can.

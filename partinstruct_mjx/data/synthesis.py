@@ -458,7 +458,8 @@ def _in_cells(cells: frozenset[tuple[str, int]], category: str, type_id: int) ->
 
 DRAW_IN_PROCESSES = 500
 """A selection of at least this many episodes is drawn in one process per core (drawing takes about 0.1 s an
-episode on a core, mostly the grasp checks; each process's start costs seconds)."""
+episode on a core, mostly the grasp checks, and 0.3-5 s one with a turn in the air, `slot_rules.air_turn_fits`;
+each process's start costs seconds)."""
 
 
 def remembered_selection(out_dir: str | os.PathLike, split: str, count: int, seed: int = 0,

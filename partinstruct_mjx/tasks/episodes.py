@@ -304,10 +304,12 @@ def _draw(objects: list[dict], assets_root: Path, split: str, type_id: int, held
 def chain_reachable(object_dir: str, yaw: float, position: tuple[float, float], chain) -> bool:
     """The arm reaches a grasp on each part the chain grasps and a touch pose on each part it touches, where the
     object is by then: moved by the chain's horizontal carries and pushes before (slot_rules.grasp_reachable,
-    slot_rules.touch_reachable)."""
+    slot_rules.touch_reachable); and a grasp followed by a turn in the air has a grasp that fits the turn
+    (slot_rules.air_turn_fits)."""
     x, y = position
-    for step, following in zip(chain, chain[1:] + (None,)):
-        if step.name == "grasp_obj" and not slot_rules.grasp_reachable(object_dir, yaw, step.part, (x, y)):
+    for index, (step, following) in enumerate(zip(chain, chain[1:] + (None,))):
+        if step.name == "grasp_obj" and not (slot_rules.grasp_reachable(object_dir, yaw, step.part, (x, y))
+                                             and slot_rules.air_turn_fits(object_dir, yaw, (x, y), chain, index)):
             return False
         if step.name == "touch_obj":
             pushed = following is not None and following.name == "move_gripper" and following.touching

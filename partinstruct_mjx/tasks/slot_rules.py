@@ -18,7 +18,8 @@ episode's yaw:
   applies the cheap rules; the episode generator asks `graspable` only for the parts of the assignment it draws;
 * reach (asked by the generator of the drawn chain, tasks/episodes.py `chain_reachable`): the arm, from its home
   pose, reaches one of the oracle's first grasps on a grasped part (`grasp_reachable`) and one of its touch poses on
-  a touched part (`touch_reachable`), where the chain's pushes and carries before have moved the object;
+  a touched part (`touch_reachable`), where the chain's pushes and carries before have moved the object; and a grasp
+  followed by a turn in the air needs one of the oracle's grasps whose look-ahead fits the turn (`air_turn_fits`);
 * touch: exposed;
 * rotate: centroid >= 2 cm from the object origin (FACING is measured from it);
   in the air any direction but the one the part faces now, and where the object is put down after the turn
@@ -46,7 +47,7 @@ import zlib
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from types import MappingProxyType
+from types import MappingProxyType, SimpleNamespace
 
 import jax
 import jax.numpy as jnp
@@ -55,7 +56,8 @@ import numpy as np
 
 from partinstruct_mjx.control import jax_ik
 from partinstruct_mjx.errors import AssetError
-from partinstruct_mjx.oracle import candidates, machine, pushing
+from partinstruct_mjx.oracle import candidates, lookahead, machine, pushing
+from partinstruct_mjx.oracle.kinds import RELEASE, ROTATE
 from partinstruct_mjx.sim.mujoco_backend import MujocoBackend
 from partinstruct_mjx.sim.panda import HOME_ARM_QPOS
 from partinstruct_mjx.sim.scene import TABLE_HEIGHT, SceneConfig, build_scene
@@ -81,6 +83,11 @@ SPATIAL_WORDS = tuple(DIRECTIONS)
 APPROACHES = ("left", "right", "front", "back", "top")
 """Directions the gripper comes from (never from below the table)."""
 
+AIR_TURN_KEYS = 6
+"""Grasp searches `air_turn_fits` looks through (each the oracle's candidates for one random key)."""
+AIR_TURN_CHUNK = 4
+"""Grasp poses `air_turn_fits` checks at once, chunk after chunk until one fits (a chunk costs about as much as one
+pose on a CPU core: the look-ahead's IK is vectorised)."""
 GRASP_CHECK_KEYS = 4
 MIN_GRASP_KEYS = 4
 """A part is graspable when the oracle's candidate search (candidates.NUM_SEEDS random seed points, as the oracle
@@ -254,6 +261,80 @@ def grasp_reachable(object_dir: str, yaw: float, part: str, position: tuple[floa
     return bool(_any_reachable(_arm(), (flat["centre"] @ turn.T + shift).astype(np.float32),
                                (flat["approach"] @ turn.T).astype(np.float32),
                                (flat["closing"] @ turn.T).astype(np.float32), np.isfinite(flat["score"])))
+
+
+def air_turn_fits(object_dir: str, yaw: float, position: tuple[float, float], chain, grasp: int) -> bool:
+    """For a chain whose grasp at step `grasp` is followed by a turn in the air (before the next release): some grasp
+    the oracle tries first on the grasped part of the object resting on the table turned by `yaw` with its origin at
+    `position` (x, y) is in the look-ahead's best tier (lookahead.CLEAR_AND_FITS): reached from home
+    (machine.approach_reachable), the arm carries out the carries and the turn after it, and the turned object ends
+    where the task's AT goal wants it (rotation.TurnPlan.fits). The candidates are the planner's for an air turn
+    (machine.candidate_pool with the lever weight), from AIR_TURN_KEYS searches. A kitchen pot held by the knob on its
+    lid, its bottom to face the robot, had to be swung round its origin with the hand pointing back at the robot
+    (out of reach) or about the hand, 15 cm away from the AT goal; a box held from above and turned upside down ends
+    with the hand under it, 16 cm too high. True for any other chain."""
+    chains = machine.compile_chains([SimpleNamespace(chain=chain)], names := _chain_parts(chain))
+    kinds, tables = chains["kind"][0], chains["on_table_turn"][0]
+    later = np.arange(len(kinds)) > grasp
+    held = np.cumsum(later & (kinds == RELEASE)) == 0
+    if not (later & held & (kinds == ROTATE) & ~tables).any():
+        return True
+    geometry = load_object_geometry(object_dir)
+    rotation = yaw_matrix(yaw)
+    origin = np.array([position[0], position[1], TABLE_HEIGHT - (rotation @ geometry.object_points)[2].min()],
+                      np.float32)
+    shift = np.array([position[0], position[1], 0.0], np.float32)
+    # FACING's vector of each part row (padded to the chain's size, so the check compiles once per cloud size).
+    vectors = np.zeros((len(kinds), 3), np.float32)
+    for row, name in enumerate(names):
+        _, (points, _, valid) = _resting_clouds(object_dir, yaw, name)
+        vectors[row] = points[valid].mean(axis=0) + shift - origin
+    (points, normals, valid), (part_points, part_normals, part_valid) = _resting_clouds(object_dir, yaw,
+                                                                                      chain[grasp].part)
+    whole, part = _padded(points + shift, normals, valid), _padded(part_points + shift, part_normals, part_valid)
+    chain_arrays = {name: jnp.asarray(chains[name][0]) for name in ("kind", "direction", "put_down", "part",
+                                                                    "on_table_turn", "num_skills")}
+    # One search after the other, until one has a grasp that fits (most draws that have one have it in the first).
+    return any(_best_air_turn_tier(_arm(), *whole, *part, chain_arrays, grasp, origin, vectors, key)
+               == lookahead.CLEAR_AND_FITS for key in jax.random.split(jax.random.PRNGKey(0), AIR_TURN_KEYS))
+
+
+def _chain_parts(chain) -> list[str]:
+    """The part names a chain uses, each once (the part rows of its compiled chain)."""
+    return list(dict.fromkeys(step.part for step in chain if step.part is not None))
+
+
+@jax.jit
+def _best_air_turn_tier(kinematics, object_points, object_normals, object_valid, part_points, part_normals,
+                        part_valid, chain, grasp, object_pos, part_vectors, key):
+    """The best look-ahead tier of the reachable grasps of one of `air_turn_fits`' searches (`key`): the planner's
+    candidates for an air turn, both closing directions, checked AIR_TURN_CHUNK at a time in rank order until one is
+    in the best tier."""
+    home = jnp.asarray(HOME_ARM_QPOS, jnp.float32)
+    grasps = candidates.grasp_candidates(object_points, object_normals, object_valid, part_points, part_normals,
+                                         part_valid, key, lever_weight=machine.AIR_TURN_LEVER_WEIGHT)
+    top = machine.candidate_pool(grasps["score"], jnp.abs(grasps["approach"][:, 2]) < machine.LEVEL_APPROACH, True)
+    positions, quats_a, quats_b = jax.vmap(candidates.tcp_pose)(grasps["centre"][top], grasps["approach"][top],
+                                                                grasps["closing"][top])
+    poses = (jnp.tile(positions, (2, 1)), jnp.concatenate([quats_a, quats_b]),
+             jnp.tile(grasps["approach"][top], (2, 1)), jnp.tile(jnp.isfinite(grasps["score"][top]), 2))
+
+    def tier(position, quat, axis, usable):
+        reached, joints = machine.approach_reachable(kinematics, home, position, quat, axis)
+        outlook = lookahead.outlook(kinematics, joints, position, quat, chain, grasp, object_pos, object_points,
+                                    object_valid, lambda row: part_vectors[row])
+        return jnp.where(reached & usable, outlook, lookahead.BLOCKED)
+
+    def body(carry):
+        i, best = carry
+        chunk = [jax.lax.dynamic_slice_in_dim(x, i * AIR_TURN_CHUNK, AIR_TURN_CHUNK) for x in poses]
+        return i + 1, jnp.minimum(best, jax.vmap(tier)(*chunk).min())
+
+    def more(carry):
+        i, best = carry
+        return (i * AIR_TURN_CHUNK < poses[0].shape[0]) & (best != lookahead.CLEAR_AND_FITS)
+
+    return jax.lax.while_loop(more, body, (0, lookahead.BLOCKED))[1]
 
 
 def _yaw_steps(yaw: float, part: str) -> int | None:
