@@ -14,7 +14,7 @@ turn, options after which it cannot be made rank last: the arm must reach the wa
 lowest point meets the table or the hand (wide along the fingers' closing axis) meets it first, and the object's
 origin must then be near the height it rested at (the put-down's AT measures it from there); of the others, those
 that leave the object on the table rank first. The plan also says whether the chosen turn fits the task
-(TurnPlan.fits), which the grasp look-ahead ranks grasps by. Pure JAX for one environment.
+(TurnPlan.fits), which the grasp look-ahead ranks grasps by; a turn that fits ranks before one that does not. Pure JAX for one environment.
 """
 
 from __future__ import annotations
@@ -158,8 +158,9 @@ def _reach_step(kinematics, joints, ok, pos, quat):
 
 class TurnPlan(NamedTuple):
     """The turn `plan` chose: found, axis (3,), angle, pivot (3,), the hand's raise, the joints (7,) at its end, and
-    whether it fits the task: the put-down after it (if any) can be made, and the object ends less than MAX_LIFT
-    above where it was (the AT goal after an air turn allows 0.08 m)."""
+    whether it fits the task: the put-down after it (if any) can be made, the object ends less than MAX_LIFT above
+    where it was (the AT goal after an air turn allows 0.08 m), and, turned about the TCP, the arm can carry it back
+    to where it was."""
     found: jnp.ndarray
     axis: jnp.ndarray
     angle: jnp.ndarray
