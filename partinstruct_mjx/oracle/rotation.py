@@ -205,6 +205,9 @@ def plan(kinematics, q, hand_pos, hand_quat, object_pos, object_points, object_v
 
         (joints, ok), _ = jax.lax.scan(follow, (q, jnp.asarray(True)), jnp.asarray(FRACTIONS, jnp.float32))
         turned_origin = pivot + quat_rotate(axis_angle_to_quat(axis, angle), object_pos - pivot)
+        # The hand's pose at the turn's end, raised.
+        end_pos, end_quat = turned_pose(pivot, axis, angle, 1.0, hand_pos, hand_quat)
+        end_pos = end_pos + raise_by * jnp.asarray(UP)
 
         def put_down():
             # The hand lowers the object until its lowest point meets the table or the hand meets it first, and the
@@ -212,8 +215,6 @@ def plan(kinematics, q, hand_pos, hand_quat, object_pos, object_points, object_v
             # before the lift: the origin must end near the height above the table it rested at (a bucket turned
             # upside down by its rim stays a few centimetres up, held where the hand meets the table: the task's AT
             # still holds, the put-down skill's ON does not).
-            end_pos, end_quat = turned_pose(pivot, axis, angle, 1.0, hand_pos, hand_quat)
-            end_pos = end_pos + raise_by * jnp.asarray(UP)
             drop = jnp.maximum(lowest(1.0) + raise_by - TABLE_HEIGHT, 0.0)
             hand_room = hand_bottom(end_pos, end_quat) - TABLE_HEIGHT + PUT_DOWN_SLACK
             descent = jnp.clip(jnp.minimum(drop, hand_room), 0.0, None)
@@ -230,8 +231,6 @@ def plan(kinematics, q, hand_pos, hand_quat, object_pos, object_points, object_v
         def carried_back(lift):
             # The arm must reach the hand's pose with the turned object's origin back in its place (the object turned
             # about its origin, raised by `lift`), along the way from the turn's end.
-            end_pos, end_quat = turned_pose(pivot, axis, angle, 1.0, hand_pos, hand_quat)
-            end_pos = end_pos + raise_by * jnp.asarray(UP)
             back_pos, _ = turned_pose(object_pos, axis, angle, 1.0, hand_pos, hand_quat)
             back_pos = back_pos + lift * jnp.asarray(UP)
 

@@ -314,10 +314,8 @@ def _best_air_turn_tier(kinematics, object_points, object_normals, object_valid,
     grasps = candidates.grasp_candidates(object_points, object_normals, object_valid, part_points, part_normals,
                                          part_valid, key, lever_weight=machine.AIR_TURN_LEVER_WEIGHT)
     top = machine.candidate_pool(grasps["score"], jnp.abs(grasps["approach"][:, 2]) < machine.LEVEL_APPROACH, True)
-    positions, quats_a, quats_b = jax.vmap(candidates.tcp_pose)(grasps["centre"][top], grasps["approach"][top],
-                                                                grasps["closing"][top])
-    poses = (jnp.tile(positions, (2, 1)), jnp.concatenate([quats_a, quats_b]),
-             jnp.tile(grasps["approach"][top], (2, 1)), jnp.tile(jnp.isfinite(grasps["score"][top]), 2))
+    poses = _both_closings(grasps["centre"][top], grasps["approach"][top], grasps["closing"][top],
+                           jnp.isfinite(grasps["score"][top]))
 
     def tier(position, quat, axis, usable):
         reached, joints = machine.approach_reachable(kinematics, home, position, quat, axis)
@@ -426,9 +424,15 @@ def _arm() -> jax_ik.ArmKinematics:
 @jax.jit
 def _any_reachable(kinematics, centres, approaches, closings, valid):
     """Whether the arm reaches, from home, any valid grasp (rows of centre, approach, closing) either way round."""
+    return _any_reached_from_home(kinematics, *_both_closings(centres, approaches, closings, valid))
+
+
+def _both_closings(centres, approaches, closings, valid):
+    """TCP positions, quaternions, approach axes and validity of grasps (rows of centre, approach, closing) with
+    either closing direction: every grasp as given, then every grasp turned half a turn about its approach."""
     positions, quats_a, quats_b = jax.vmap(candidates.tcp_pose)(centres, approaches, closings)
-    return _any_reached_from_home(kinematics, jnp.tile(positions, (2, 1)), jnp.concatenate([quats_a, quats_b]),
-                                  jnp.tile(approaches, (2, 1)), jnp.tile(valid, 2))
+    return (jnp.tile(positions, (2, 1)), jnp.concatenate([quats_a, quats_b]), jnp.tile(approaches, (2, 1)),
+            jnp.tile(valid, 2))
 
 
 def _any_reached_from_home(kinematics, positions, quats, axes, usable):
