@@ -14,7 +14,8 @@ turn, options after which it cannot be made rank last: the arm must reach the wa
 lowest point meets the table or the hand (wide along the fingers' closing axis) meets it first, and the object's
 origin must then be near the height it rested at (the put-down's AT measures it from there); of the others, those
 that leave the object on the table rank first. The plan also says whether the chosen turn fits the task
-(TurnPlan.fits), which the grasp look-ahead ranks grasps by; a turn that fits ranks before one that does not. Pure JAX for one environment.
+(TurnPlan.fits), which the grasp look-ahead ranks grasps by; a turn that fits ranks before one that does not. Pure
+JAX for one environment.
 """
 
 from __future__ import annotations

@@ -273,7 +273,8 @@ def air_turn_fits(object_dir: str, yaw: float, position: tuple[float, float], ch
     lid, its bottom to face the robot, had to be swung round its origin with the hand pointing back at the robot
     (out of reach) or about the hand, 15 cm away from the AT goal; a box held from above and turned upside down ends
     with the hand under it, 16 cm too high. True for any other chain."""
-    chains = machine.compile_chains([SimpleNamespace(chain=chain)], names := _chain_parts(chain))
+    names = _chain_parts(chain)
+    chains = machine.compile_chains([SimpleNamespace(chain=chain)], names)
     kinds, tables = chains["kind"][0], chains["on_table_turn"][0]
     later = np.arange(len(kinds)) > grasp
     held = np.cumsum(later & (kinds == RELEASE)) == 0
