@@ -356,6 +356,14 @@ def test_episodes_only_grasp_and_touch_where_the_arm_reaches():
         True, True, True, False]
 
 
+
+def test_a_push_needs_a_way_in_for_the_fingers():
+    # laptop_003 turned 33 degrees (episode 4000226 of the seed-3 880 draw): its screen's back corner, low down, is
+    # the push point for a push to the front, and the screen frame stands 1.3 cm out beside it there: the pads meet
+    # the frame first. Its side can be pushed to the right.
+    laptop = str(assets_root() / "objects" / "laptop" / "laptop_003")
+    assert slot_rules.part_views(slot_rules.load_object_geometry(laptop), 0.5727)["screen"].pushable == {"right"}
+
 def test_episodes_turn_an_object_in_the_air_only_where_a_grasp_fits_the_turn():
     # kitchen_pot_006 held by the knob on its lid, lifted, its base body to face the robot (episode 287 of the 880
     # draw, type 8): every grasp on the knob swings the pot 15 cm off the AT goal or leaves the arm out of reach, so

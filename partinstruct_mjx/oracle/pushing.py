@@ -6,7 +6,7 @@ TABLE_FRICTION * h < the horizontal distance from its centre of mass to that edg
 object's middle turns it. So a push point is a point of the touched part on its face towards the pusher, at least
 TIP_CLEARANCE above the table (the closed pads' round tips), close to the line through the middle along the push,
 and low enough not to tip the object (with a margin); the lowest such point, nearest that line, is taken. A part
-can be pushed there only where the fingertip has a way in to it clear of the rest of the object.
+can be pushed there only where the fingertip, coming in, touches it before anything else of the object stops it.
 Used by episode generation (can this part be pushed this way?) and by the oracle (where to touch and push).
 Pure JAX for one object; numpy inputs are fine.
 """
@@ -39,6 +39,9 @@ TOUCH_RAY_START = 0.005
 TOUCH_RAY_LENGTH = 0.12
 """A touch point is free when no object point lies within TOUCH_RAY_RADIUS (about the closed fingertips' half width)
 of the line the fingertip comes in along, from TOUCH_RAY_START to TOUCH_RAY_LENGTH (m) out from the point."""
+WAY_TOUCH = 0.008
+"""A fingertip stopped this close (m) to the part touches it (TOUCHING's 1 cm less a margin: the object's convex
+pieces stand a few millimetres out of its surface points)."""
 APPROACH_TILTS = (0.0, 0.8)
 """Tilts (rad, down from horizontal) of the fingertip's ways in to a push point from the pusher's side: one must be
 open (`open_way`). A display's screen sunk 1.3 cm inside its frame had its push point on its edge, where only the
@@ -76,13 +79,19 @@ def push_point(part_points, part_valid, object_points, object_valid, direction):
 
 
 def open_way(point, ray, part_points, part_valid, object_points, object_valid):
-    """Whether the fingertip's way in to `point` of the part, along the unit `ray` out of it (not vertical), is clear
-    of the object beyond the part's own face that way (the point may lie up to FACE_BAND behind that face)."""
-    outward = ray * jnp.array([1.0, 1.0, 0.0])
-    outward = outward / jnp.linalg.norm(outward)
-    behind_face = jnp.where(part_valid, part_points @ outward, -jnp.inf).max() - point @ outward
-    start = TOUCH_RAY_START + behind_face / (ray @ outward)
-    return clear_rays(point[None], ray, object_points, object_valid, start=start)[0]
+    """Whether the fingertip, coming in to `point` of the part along the unit `ray` out of it, touches the part where
+    the object stops it: the first object point it meets (the farthest out within TOUCH_RAY_RADIUS of its way, up to
+    TOUCH_RAY_LENGTH) lies within WAY_TOUCH of the part.
+
+    A laptop's screen sits in its frame, which stands about 1 cm further out at its edges; the screen leaning out at
+    its top put the frame's edge level with the screen's own face, and the pads met the frame 1.2-1.4 cm before the
+    fingertip reached the screen: the laptop slid and TOUCHING never held."""
+    offset = object_points - point
+    along = offset @ ray
+    lateral = jnp.sum(offset ** 2, -1) - along ** 2
+    in_way = object_valid & (lateral < TOUCH_RAY_RADIUS ** 2) & (along < TOUCH_RAY_LENGTH)
+    stop = point + jnp.where(in_way, along, 0.0).max(initial=0.0) * ray
+    return (part_valid & (jnp.sum((part_points - stop) ** 2, -1) < WAY_TOUCH ** 2)).any()
 
 
 def clear_rays(points, ray, object_points, object_valid, start=TOUCH_RAY_START):
